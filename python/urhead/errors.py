@@ -1,0 +1,24 @@
+"""Exceptions raised for bad input. Each subclasses the builtin a caller would catch
+(``ValueError``, ``TypeError``, ``MemoryError``) and its message names the argument."""
+
+from urhead._core import (
+    IndexRangeError,
+    InvalidArgumentError,
+    NonFiniteError,
+    ShapeError,
+    SizeLimitError,
+)
+
+
+class DTypeError(TypeError):
+    """A tensor has the wrong dtype or device."""
+
+
+__all__ = [
+    "DTypeError",
+    "IndexRangeError",
+    "InvalidArgumentError",
+    "NonFiniteError",
+    "ShapeError",
+    "SizeLimitError",
+]

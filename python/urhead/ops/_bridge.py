@@ -1,0 +1,56 @@
+"""Passing tensors to the Rust kernels: checks a caller can act on, then zero-copy numpy
+views. Shapes and values are validated in Rust (one source of truth for every kernel)."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from urhead import _core
+from urhead.errors import DTypeError, InvalidArgumentError
+
+FLOAT_DTYPES = (torch.float32, torch.float64)
+
+
+def float_dtype(name: str, t: torch.Tensor) -> torch.dtype:
+    """The dtype of the float tensor ``t``; the one every other float argument must share."""
+    check_tensor(name, t)
+    if t.dtype not in FLOAT_DTYPES:
+        raise DTypeError(f"{name} must be float32 or float64, got {t.dtype}")
+    return t.dtype
+
+
+def check_tensor(name: str, t: object) -> None:
+    if not isinstance(t, torch.Tensor):
+        raise DTypeError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
+    if t.device.type != "cpu":
+        raise DTypeError(f"{name} must be on the CPU, got device {t.device}")
+    if t.is_sparse or t.layout != torch.strided:
+        raise DTypeError(f"{name} must be a dense (strided) tensor, got layout {t.layout}")
+
+
+def to_numpy(name: str, t: torch.Tensor, dtype: torch.dtype) -> np.ndarray:
+    """A zero-copy numpy view of ``t``; ``t`` must be a contiguous CPU tensor of ``dtype``."""
+    check_tensor(name, t)
+    if t.dtype != dtype:
+        raise DTypeError(f"{name} must be {dtype}, got {t.dtype}")
+    if not t.is_contiguous():
+        raise InvalidArgumentError(f"{name} must be contiguous; call .contiguous() first")
+    return t.detach().numpy()
+
+
+def grad_to_numpy(name: str, g: torch.Tensor | None, dtype: torch.dtype) -> np.ndarray | None:
+    """Incoming gradients may be non-contiguous or broadcast views; those are copied."""
+    if g is None:
+        return None
+    return g.detach().to(dtype).contiguous().numpy()
+
+
+def from_numpy(a: np.ndarray | None) -> torch.Tensor | None:
+    return None if a is None else torch.from_numpy(a)
+
+
+def kernel(name: str, dtype: torch.dtype):
+    """The Rust entry point ``name`` for ``dtype`` (``lbs_forward`` → ``lbs_forward_f32``)."""
+    suffix = {torch.float32: "f32", torch.float64: "f64"}[dtype]
+    return getattr(_core, f"{name}_{suffix}")

@@ -1,0 +1,18 @@
+//! urhead-core: the CPU kernels of urhead, with forward and hand-written backward passes
+//! side by side. No Python here: `cargo test` and `cargo bench` run on their own.
+//!
+//! Conventions (see DESIGN.md): OpenCV camera axes, row-major contiguous slices, gradients
+//! named `v_<input>`, rayon parallelism over fixed-size chunks so results are bitwise
+//! identical for any thread count (no float atomics, reductions merged in a fixed order).
+
+pub mod camera;
+pub mod error;
+pub mod lbs;
+pub mod mat3;
+pub mod parallel;
+pub mod real;
+pub mod testing;
+
+pub use camera::Camera;
+pub use error::{Error, Result};
+pub use real::Real;

@@ -1,0 +1,94 @@
+//! Tiny generic 3-vector / 3×3 helpers for per-joint and per-vertex math (row-major).
+
+use crate::Real;
+
+pub type V3<T> = [T; 3];
+pub type M3<T> = [[T; 3]; 3];
+
+#[inline(always)]
+pub fn zero3<T: Real>() -> M3<T> {
+    [[T::zero(); 3]; 3]
+}
+
+#[inline(always)]
+pub fn eye3<T: Real>() -> M3<T> {
+    let mut m = zero3();
+    for i in 0..3 {
+        m[i][i] = T::one();
+    }
+    m
+}
+
+#[inline(always)]
+pub fn matmul<T: Real>(a: &M3<T>, b: &M3<T>) -> M3<T> {
+    let mut m = zero3();
+    for i in 0..3 {
+        for j in 0..3 {
+            m[i][j] = a[i][0] * b[0][j] + a[i][1] * b[1][j] + a[i][2] * b[2][j];
+        }
+    }
+    m
+}
+
+/// aᵀ·b
+#[inline(always)]
+pub fn matmul_tn<T: Real>(a: &M3<T>, b: &M3<T>) -> M3<T> {
+    matmul(&transpose(a), b)
+}
+
+/// a·bᵀ
+#[inline(always)]
+pub fn matmul_nt<T: Real>(a: &M3<T>, b: &M3<T>) -> M3<T> {
+    matmul(a, &transpose(b))
+}
+
+#[inline(always)]
+pub fn transpose<T: Real>(a: &M3<T>) -> M3<T> {
+    [0, 1, 2].map(|i| [a[0][i], a[1][i], a[2][i]])
+}
+
+#[inline(always)]
+pub fn matvec<T: Real>(a: &M3<T>, v: &V3<T>) -> V3<T> {
+    [0, 1, 2].map(|i| a[i][0] * v[0] + a[i][1] * v[1] + a[i][2] * v[2])
+}
+
+/// aᵀ·v
+#[inline(always)]
+pub fn matvec_t<T: Real>(a: &M3<T>, v: &V3<T>) -> V3<T> {
+    [0, 1, 2].map(|i| a[0][i] * v[0] + a[1][i] * v[1] + a[2][i] * v[2])
+}
+
+#[inline(always)]
+pub fn add<T: Real>(a: &M3<T>, b: &M3<T>) -> M3<T> {
+    [0, 1, 2].map(|i| [0, 1, 2].map(|j| a[i][j] + b[i][j]))
+}
+
+#[inline(always)]
+pub fn scale<T: Real>(a: &M3<T>, s: T) -> M3<T> {
+    [0, 1, 2].map(|i| [0, 1, 2].map(|j| a[i][j] * s))
+}
+
+/// Outer product a·bᵀ.
+#[inline(always)]
+pub fn outer<T: Real>(a: &V3<T>, b: &V3<T>) -> M3<T> {
+    [0, 1, 2].map(|i| [0, 1, 2].map(|j| a[i] * b[j]))
+}
+
+/// Frobenius inner product Σ a∘b.
+#[inline(always)]
+pub fn frobenius<T: Real>(a: &M3<T>, b: &M3<T>) -> T {
+    let mut s = T::zero();
+    for i in 0..3 {
+        for j in 0..3 {
+            s += a[i][j] * b[i][j];
+        }
+    }
+    s
+}
+
+/// The cross-product matrix: hat(w)·x = w × x.
+#[inline(always)]
+pub fn hat<T: Real>(w: &V3<T>) -> M3<T> {
+    let z = T::zero();
+    [[z, -w[2], w[1]], [w[2], z, -w[0]], [-w[1], w[0], z]]
+}

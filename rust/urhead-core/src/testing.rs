@@ -1,0 +1,108 @@
+//! Deterministic synthetic inputs shared by tests and benches (no files, no Python).
+
+use crate::lbs::LbsModel;
+use crate::Real;
+
+/// SplitMix64: a small, well-mixed, reproducible generator.
+#[derive(Debug, Clone)]
+pub struct Rng(u64);
+
+impl Rng {
+    pub fn new(seed: u64) -> Self {
+        Self(seed)
+    }
+
+    pub fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^ (z >> 31)
+    }
+
+    /// Uniform in [lo, hi).
+    pub fn uniform(&mut self, lo: f64, hi: f64) -> f64 {
+        lo + (hi - lo) * (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
+    }
+
+    pub fn vec<T: Real>(&mut self, n: usize, lo: f64, hi: f64) -> Vec<T> {
+        (0..n).map(|_| T::c(self.uniform(lo, hi))).collect()
+    }
+}
+
+/// Owned tables of a random skinned model with a FLAME-like chain (parents
+/// `[-1, 0, 1, 1, 1, …]`), sparse-ish weights summing to 1 and a normalised regressor.
+#[derive(Debug, Clone)]
+pub struct SyntheticLbs<T> {
+    pub v_template: Vec<T>,
+    pub shapedirs: Vec<T>,
+    pub posedirs: Vec<T>,
+    pub j_regressor: Vec<T>,
+    pub parents: Vec<i32>,
+    pub lbs_weights: Vec<T>,
+    pub num_verts: usize,
+    pub num_betas: usize,
+    pub num_joints: usize,
+}
+
+impl<T: Real> SyntheticLbs<T> {
+    pub fn new(num_verts: usize, num_betas: usize, num_joints: usize, seed: u64) -> Self {
+        let (v, nb, nj) = (num_verts, num_betas, num_joints);
+        let mut rng = Rng::new(seed);
+        let v_template = rng.vec(v * 3, -0.1, 0.1);
+        let shapedirs = rng.vec(v * 3 * nb, -1e-3, 1e-3);
+        let posedirs = rng.vec(9 * (nj - 1) * v * 3, -1e-3, 1e-3);
+        let mut j_regressor = vec![T::zero(); nj * v];
+        for j in 0..nj {
+            let picks: Vec<usize> = (0..8).map(|_| (rng.next_u64() % v as u64) as usize).collect();
+            for &p in &picks {
+                j_regressor[j * v + p] += T::c(1.0 / 8.0);
+            }
+        }
+        let mut lbs_weights = vec![T::zero(); v * nj];
+        for i in 0..v {
+            let a = (rng.next_u64() % nj as u64) as usize;
+            let b = (rng.next_u64() % nj as u64) as usize;
+            let w = rng.uniform(0.2, 0.8);
+            lbs_weights[i * nj + a] += T::c(w);
+            lbs_weights[i * nj + b] += T::c(1.0 - w);
+        }
+        let parents = (0..nj as i32)
+            .map(|j| {
+                if j == 0 {
+                    -1
+                } else if j == 1 {
+                    0
+                } else {
+                    1
+                }
+            })
+            .collect();
+        Self {
+            v_template,
+            shapedirs,
+            posedirs,
+            j_regressor,
+            parents,
+            lbs_weights,
+            num_verts,
+            num_betas,
+            num_joints,
+        }
+    }
+
+    pub fn model(&self) -> LbsModel<'_, T> {
+        LbsModel::new(
+            &self.v_template,
+            &self.shapedirs,
+            &self.posedirs,
+            &self.j_regressor,
+            &self.parents,
+            &self.lbs_weights,
+            self.num_verts,
+            self.num_betas,
+            self.num_joints,
+        )
+        .expect("synthetic model is valid")
+    }
+}

@@ -1,0 +1,234 @@
+//! Binding of `urhead_core::lbs`: float32 and float64 entry points sharing one generic body.
+
+use numpy::{Element, PyReadonlyArrayDyn};
+use pyo3::prelude::*;
+use pyo3::types::PyTuple;
+use urhead_core::lbs::{lbs_backward, lbs_forward, LbsGradOutputs, LbsInputs, LbsModel, LbsNeeds, LbsSaved};
+use urhead_core::Real;
+
+use crate::arrays::{array, data, shape};
+use crate::errors::{py_err, ShapeError};
+use crate::pool::with_threads;
+
+type Arr<'py, T> = PyReadonlyArrayDyn<'py, T>;
+
+/// The model tables, borrowed from numpy.
+struct Tables<'py, T: Element> {
+    v_template: Arr<'py, T>,
+    shapedirs: Arr<'py, T>,
+    posedirs: Arr<'py, T>,
+    j_regressor: Arr<'py, T>,
+    parents: Arr<'py, i32>,
+    lbs_weights: Arr<'py, T>,
+}
+
+impl<T: Element + Real> Tables<'_, T> {
+    fn model(&self) -> PyResult<LbsModel<'_, T>> {
+        let v = shape(&self.v_template, "v_template", 2, "(V, 3)")?[0];
+        let sd = shape(&self.shapedirs, "shapedirs", 3, "(V, 3, NB)")?;
+        let j = shape(&self.j_regressor, "j_regressor", 2, "(J, V)")?[0];
+        shape(&self.posedirs, "posedirs", 2, "(9·(J−1), V·3)")?;
+        shape(&self.lbs_weights, "lbs_weights", 2, "(V, J)")?;
+        shape(&self.parents, "parents", 1, "(J,)")?;
+        LbsModel::new(
+            data(&self.v_template, "v_template")?,
+            data(&self.shapedirs, "shapedirs")?,
+            data(&self.posedirs, "posedirs")?,
+            data(&self.j_regressor, "j_regressor")?,
+            data(&self.parents, "parents")?,
+            data(&self.lbs_weights, "lbs_weights")?,
+            v,
+            sd[2],
+            j,
+        )
+        .map_err(py_err)
+    }
+}
+
+fn inputs<'a, T: Element + Real>(
+    betas: &'a Arr<'_, T>,
+    pose: &'a Arr<'_, T>,
+    transl: Option<&'a Arr<'_, T>>,
+) -> PyResult<LbsInputs<'a, T>> {
+    let batch = shape(betas, "betas", 2, "(B, NB)")?[0];
+    let pb = shape(pose, "pose", 2, "(B, J·3)")?[0];
+    if pb != batch {
+        return Err(ShapeError::new_err(format!(
+            "pose must have batch size {batch} like betas, got {pb}"
+        )));
+    }
+    let transl = match transl {
+        Some(t) => {
+            shape(t, "transl", 2, "(B, 3)")?;
+            Some(data(t, "transl")?)
+        }
+        None => None,
+    };
+    Ok(LbsInputs {
+        betas: data(betas, "betas")?,
+        pose: data(pose, "pose")?,
+        transl,
+        batch,
+    })
+}
+
+fn forward<'py, T: Element + Real>(
+    py: Python<'py>,
+    betas: Arr<'py, T>,
+    pose: Arr<'py, T>,
+    transl: Option<Arr<'py, T>>,
+    tables: Tables<'py, T>,
+    num_threads: usize,
+) -> PyResult<Bound<'py, PyTuple>> {
+    let model = tables.model()?;
+    let inputs = inputs(&betas, &pose, transl.as_ref())?;
+    let out = py
+        .allow_threads(|| with_threads(num_threads, || lbs_forward(&model, &inputs)))
+        .map_err(py_err)?;
+    let (b, v, j) = (inputs.batch, model.num_verts, model.num_joints);
+    PyTuple::new(
+        py,
+        [
+            array(py, out.verts, &[b, v, 3])?,
+            array(py, out.joints, &[b, j, 3])?,
+            array(py, out.rotations, &[b, v, 3, 3])?,
+            array(py, out.v_shaped, &[b, v, 3])?,
+            array(py, out.v_posed, &[b, v, 3])?,
+            array(py, out.rest_joints, &[b, j, 3])?,
+        ],
+    )
+}
+
+#[allow(clippy::type_complexity)]
+fn backward<'py, T: Element + Real>(
+    py: Python<'py>,
+    betas: Arr<'py, T>,
+    pose: Arr<'py, T>,
+    transl: Option<Arr<'py, T>>,
+    tables: Tables<'py, T>,
+    saved: (Arr<'py, T>, Arr<'py, T>, Arr<'py, T>),
+    grads: (Option<Arr<'py, T>>, Option<Arr<'py, T>>, Option<Arr<'py, T>>),
+    needs: (bool, bool, bool, bool, bool),
+    num_threads: usize,
+) -> PyResult<Bound<'py, PyTuple>> {
+    let model = tables.model()?;
+    let inputs = inputs(&betas, &pose, transl.as_ref())?;
+    let saved = LbsSaved {
+        v_shaped: data(&saved.0, "v_shaped")?,
+        v_posed: data(&saved.1, "v_posed")?,
+        rest_joints: data(&saved.2, "rest_joints")?,
+    };
+    let grads_in = LbsGradOutputs {
+        v_verts: grads.0.as_ref().map(|a| data(a, "v_verts")).transpose()?,
+        v_joints: grads.1.as_ref().map(|a| data(a, "v_joints")).transpose()?,
+        v_rotations: grads.2.as_ref().map(|a| data(a, "v_rotations")).transpose()?,
+    };
+    let needs = LbsNeeds {
+        betas: needs.0,
+        pose: needs.1,
+        transl: needs.2,
+        v_template: needs.3,
+        shapedirs: needs.4,
+    };
+    let g = py
+        .allow_threads(|| {
+            with_threads(num_threads, || {
+                lbs_backward(&model, &inputs, &saved, &grads_in, &needs)
+            })
+        })
+        .map_err(py_err)?;
+    let (b, v, nb, j) = (inputs.batch, model.num_verts, model.num_betas, model.num_joints);
+    let wrap = |x: Option<Vec<T>>, dims: &[usize]| -> PyResult<PyObject> {
+        Ok(match x {
+            Some(x) => array(py, x, dims)?.into_any().unbind(),
+            None => py.None(),
+        })
+    };
+    PyTuple::new(
+        py,
+        [
+            wrap(g.v_betas, &[b, nb])?,
+            wrap(g.v_pose, &[b, j * 3])?,
+            wrap(g.v_transl, &[b, 3])?,
+            wrap(g.v_template, &[v, 3])?,
+            wrap(g.v_shapedirs, &[v, 3, nb])?,
+        ],
+    )
+}
+
+macro_rules! lbs_entry_points {
+    ($fwd:ident, $bwd:ident, $t:ty) => {
+        /// LBS forward → (verts, joints, rotations, v_shaped, v_posed, rest_joints).
+        #[pyfunction]
+        pub fn $fwd<'py>(
+            py: Python<'py>,
+            betas: Arr<'py, $t>,
+            pose: Arr<'py, $t>,
+            transl: Option<Arr<'py, $t>>,
+            v_template: Arr<'py, $t>,
+            shapedirs: Arr<'py, $t>,
+            posedirs: Arr<'py, $t>,
+            j_regressor: Arr<'py, $t>,
+            parents: Arr<'py, i32>,
+            lbs_weights: Arr<'py, $t>,
+            num_threads: usize,
+        ) -> PyResult<Bound<'py, PyTuple>> {
+            let tables = Tables {
+                v_template,
+                shapedirs,
+                posedirs,
+                j_regressor,
+                parents,
+                lbs_weights,
+            };
+            forward(py, betas, pose, transl, tables, num_threads)
+        }
+
+        /// LBS backward → (v_betas, v_pose, v_transl, v_template, v_shapedirs), None where
+        /// not requested.
+        #[pyfunction]
+        pub fn $bwd<'py>(
+            py: Python<'py>,
+            betas: Arr<'py, $t>,
+            pose: Arr<'py, $t>,
+            transl: Option<Arr<'py, $t>>,
+            v_template: Arr<'py, $t>,
+            shapedirs: Arr<'py, $t>,
+            posedirs: Arr<'py, $t>,
+            j_regressor: Arr<'py, $t>,
+            parents: Arr<'py, i32>,
+            lbs_weights: Arr<'py, $t>,
+            v_shaped: Arr<'py, $t>,
+            v_posed: Arr<'py, $t>,
+            rest_joints: Arr<'py, $t>,
+            v_verts: Option<Arr<'py, $t>>,
+            v_joints: Option<Arr<'py, $t>>,
+            v_rotations: Option<Arr<'py, $t>>,
+            needs: (bool, bool, bool, bool, bool),
+            num_threads: usize,
+        ) -> PyResult<Bound<'py, PyTuple>> {
+            let tables = Tables {
+                v_template,
+                shapedirs,
+                posedirs,
+                j_regressor,
+                parents,
+                lbs_weights,
+            };
+            backward(
+                py,
+                betas,
+                pose,
+                transl,
+                tables,
+                (v_shaped, v_posed, rest_joints),
+                (v_verts, v_joints, v_rotations),
+                needs,
+                num_threads,
+            )
+        }
+    };
+}
+
+lbs_entry_points!(lbs_forward_f32, lbs_backward_f32, f32);
+lbs_entry_points!(lbs_forward_f64, lbs_backward_f64, f64);

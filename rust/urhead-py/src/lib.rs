@@ -1,0 +1,30 @@
+//! `urhead._core`: the thin binding of urhead-core. Each entry point validates its
+//! arguments, releases the GIL, runs the core kernel on a pool of the requested size and
+//! wraps the outputs as numpy arrays (zero-copy both ways). No math lives here.
+
+mod arrays;
+mod camera;
+mod errors;
+mod lbs;
+mod pool;
+
+use pyo3::prelude::*;
+
+#[pymodule]
+fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    let py = m.py();
+    m.add("ShapeError", py.get_type::<errors::ShapeError>())?;
+    m.add("NonFiniteError", py.get_type::<errors::NonFiniteError>())?;
+    m.add("IndexRangeError", py.get_type::<errors::IndexRangeError>())?;
+    m.add(
+        "InvalidArgumentError",
+        py.get_type::<errors::InvalidArgumentError>(),
+    )?;
+    m.add("SizeLimitError", py.get_type::<errors::SizeLimitError>())?;
+    m.add_function(wrap_pyfunction!(camera::check_camera, m)?)?;
+    m.add_function(wrap_pyfunction!(lbs::lbs_forward_f32, m)?)?;
+    m.add_function(wrap_pyfunction!(lbs::lbs_backward_f32, m)?)?;
+    m.add_function(wrap_pyfunction!(lbs::lbs_forward_f64, m)?)?;
+    m.add_function(wrap_pyfunction!(lbs::lbs_backward_f64, m)?)?;
+    Ok(())
+}
