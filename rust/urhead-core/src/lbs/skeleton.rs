@@ -57,12 +57,22 @@ impl<T: Real> Skeleton<T> {
                 global_t.push(t);
             }
         }
-        let a_t = (0..nj)
-            .map(|j| {
-                let rj = matvec(&global_rot[j], &joint(j));
-                [0, 1, 2].map(|c| global_t[j][c] - rj[c])
-            })
-            .collect();
+        // a_j = t_Gj − R_Gj·J_j, accumulated down the chain as a_p + (R_Gp − R_Gj)·J_j: the
+        // same value, but exactly zero when the rotations are identities (zero pose gives
+        // the shaped template bit for bit) and its rounding scales with the rotation, not |J|.
+        let mut a_t: Vec<V3<T>> = Vec::with_capacity(nj);
+        for j in 0..nj {
+            let jp = joint(j);
+            if j == 0 {
+                let rj = matvec(&global_rot[0], &jp);
+                a_t.push([0, 1, 2].map(|c| jp[c] - rj[c]));
+            } else {
+                let p = parents[j] as usize;
+                let diff = [0, 1, 2].map(|r| [0, 1, 2].map(|c| global_rot[p][r][c] - global_rot[j][r][c]));
+                let d = matvec(&diff, &jp);
+                a_t.push([0, 1, 2].map(|c| a_t[p][c] + d[c]));
+            }
+        }
         Self {
             local,
             local_jacobian,

@@ -1,0 +1,34 @@
+"""Timing helpers shared by the benchmark scripts: medians over repeated runs, reported
+next to the plain-torch reference measured in the same process."""
+
+from __future__ import annotations
+
+import statistics
+import time
+from collections.abc import Callable
+
+
+def median_ms(
+    fn: Callable[[], object], repeats: int = 30, warmup: int = 3, max_seconds: float = 20.0
+) -> float:
+    """Median wall time of ``fn()`` in milliseconds (stops early after ``max_seconds``)."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    start = time.perf_counter()
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append((time.perf_counter() - t0) * 1e3)
+        if time.perf_counter() - start > max_seconds and len(times) >= 3:
+            break
+    return statistics.median(times)
+
+
+def report(rows: list[tuple[str, float, float | None]]) -> None:
+    """Prints ``(name, urhead_ms, reference_ms)`` rows with the speed-up ratio."""
+    print(f"{'case':<40} {'urhead ms':>10} {'torch ms':>10} {'ratio':>8}")
+    for name, ours, ref in rows:
+        ratio = f"{ref / ours:7.1f}x" if ref else "     n/a"
+        ref_s = f"{ref:10.2f}" if ref else "       n/a"
+        print(f"{name:<40} {ours:10.3f} {ref_s} {ratio}")
