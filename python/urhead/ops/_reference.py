@@ -68,3 +68,21 @@ def lbs(
         verts = verts + transl[:, None]
         joints = joints + transl[:, None]
     return LbsOutput(verts, joints, blend_r)
+
+
+def sparse_adam_step(param, exp_avg, exp_avg_sq, steps, rows, grads, lr, beta1, beta2, eps):
+    """Reference of :class:`urhead.optim.SparseAdam`'s update, in place on (N, C) tables:
+    lazy Adam with per-row step counts; rows with a non-finite gradient are skipped."""
+    bound = max(1.0, (1 - beta1) / (1 - beta2) ** 0.5)
+    for k, row in enumerate(rows.tolist()):
+        g = grads[k].double()
+        if not torch.isfinite(g).all():
+            continue
+        steps[row] += 1
+        t = int(steps[row])
+        m = beta1 * exp_avg[row].double() + (1 - beta1) * g
+        v = beta2 * exp_avg_sq[row].double() + (1 - beta2) * g * g
+        step = (m / (1 - beta1**t)) / ((v / (1 - beta2**t)).sqrt() + eps)
+        param[row] = param[row] - step.clamp(-bound, bound) * lr.double()
+        exp_avg[row] = m
+        exp_avg_sq[row] = v

@@ -5,6 +5,7 @@
 //! named `v_<input>`, rayon parallelism over fixed-size chunks so results are bitwise
 //! identical for any thread count (no float atomics, reductions merged in a fixed order).
 
+pub mod adam;
 pub mod camera;
 pub mod error;
 pub mod lbs;

@@ -2,6 +2,7 @@
 //! arguments, releases the GIL, runs the core kernel on a pool of the requested size and
 //! wraps the outputs as numpy arrays (zero-copy both ways). No math lives here.
 
+mod adam;
 mod arrays;
 mod camera;
 mod errors;
@@ -22,6 +23,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     )?;
     m.add("SizeLimitError", py.get_type::<errors::SizeLimitError>())?;
     m.add_function(wrap_pyfunction!(camera::check_camera, m)?)?;
+    m.add_function(wrap_pyfunction!(adam::sparse_adam_step, m)?)?;
     m.add_function(wrap_pyfunction!(lbs::lbs_forward_f32, m)?)?;
     m.add_function(wrap_pyfunction!(lbs::lbs_backward_f32, m)?)?;
     m.add_function(wrap_pyfunction!(lbs::lbs_forward_f64, m)?)?;

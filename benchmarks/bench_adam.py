@@ -1,0 +1,50 @@
+"""Sparse Adam on a 2048² × 56 UV atlas (the paper's maps) against a dense torch.optim.Adam
+step over the same table, medians in one run. Usage: python benchmarks/bench_adam.py"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+from timing import median_ms, report
+from urhead._threads import num_threads
+from urhead.optim import SparseAdam
+
+SIDE, CHANNELS = 2048, 56
+
+
+def sparse_timings(generator) -> list[tuple[str, float]]:
+    param = torch.zeros(SIDE, SIDE, CHANNELS)
+    opt = SparseAdam([param], lr=1e-3)
+    timings = []
+    for touched in (20_000, 100_000, 400_000):
+        rows = torch.randperm(SIDE * SIDE, generator=generator)[:touched].sort().values
+        values = torch.randn(touched, CHANNELS, generator=generator)
+        index = torch.stack([rows // SIDE, rows % SIDE])
+        grad = torch.sparse_coo_tensor(index, values, param.shape).coalesce()
+
+        def step(grad=grad):
+            param.grad = grad
+            opt.step()
+
+        timings.append((f"sparse Adam, {touched} texels touched", median_ms(step)))
+    return timings
+
+
+def main():
+    print(f"UV atlas {SIDE}² × {CHANNELS} float32, {num_threads()} threads")
+    generator = torch.Generator().manual_seed(0)
+    sparse = sparse_timings(generator)
+    dense = torch.zeros(SIDE, SIDE, CHANNELS, requires_grad=True)
+    dense.grad = torch.randn(SIDE, SIDE, CHANNELS, generator=generator)
+    dense_ms = median_ms(torch.optim.Adam([dense], lr=1e-3).step, repeats=5, warmup=1)
+    report([(name, ms, dense_ms) for name, ms in sparse])
+    print(f"(torch ms: one dense torch.optim.Adam step over the whole atlas, {dense_ms:.0f} ms)")
+
+
+if __name__ == "__main__":
+    main()

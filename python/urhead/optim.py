@@ -1,0 +1,120 @@
+"""Sparse ("lazy") Adam for UV maps: only texels that received gradient are touched."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+
+import torch
+
+from urhead import _core
+from urhead._threads import num_threads
+from urhead.errors import DTypeError, InvalidArgumentError, ShapeError
+
+
+def _channel_lr(lr, channels: int) -> torch.Tensor:
+    t = torch.as_tensor(lr, dtype=torch.float32).detach().cpu().reshape(-1)
+    if t.numel() == 1:
+        t = t.expand(channels)
+    if t.numel() != channels:
+        raise ShapeError(
+            f"lr must be a float or have one entry per channel ({channels}), got {t.numel()}"
+        )
+    return t.contiguous()
+
+
+def _rows_and_values(param: torch.Tensor, grad: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Touched rows (K,) int64, strictly increasing, and their gradients (K, C)."""
+    channels = param.shape[-1]
+    if grad.is_sparse:
+        if grad.sparse_dim() != param.dim() - 1 or grad.dense_dim() != 1:
+            raise InvalidArgumentError(
+                "a sparse gradient must index every dimension but the last (channels), "
+                f"got sparse_dim {grad.sparse_dim()}, dense_dim {grad.dense_dim()} for a "
+                f"parameter of shape {tuple(param.shape)}"
+            )
+        grad = grad.coalesce()
+        index = grad.indices()
+        rows = index[0]
+        for dim in range(1, index.shape[0]):  # row-major flat index over the leading dims
+            rows = rows * param.shape[dim] + index[dim]
+        return rows.contiguous(), grad.values().to(torch.float32).contiguous()
+    # A dense gradient (e.g. from a plain-torch path): the touched rows are those with any
+    # non-zero (or non-finite) entry. This is a dense pass, paid only by dense gradients.
+    flat = grad.reshape(-1, channels)
+    rows = (flat != 0).any(1).nonzero()[:, 0]
+    return rows, flat[rows].to(torch.float32).contiguous()
+
+
+class SparseAdam(torch.optim.Optimizer):
+    """Adam that updates only the rows (texels) present in the gradient.
+
+    Each parameter is a float32 table whose last dimension is channels, e.g. a UV atlas
+    (H, W, C). Gradients may be sparse COO tensors indexing every dimension but the last
+    (what :func:`urhead.ops.texture` produces, like ``nn.Embedding(sparse=True)``) or dense.
+
+    Differences from ``torch.optim.Adam``, all deliberate:
+    - lazy: untouched texels keep their parameters and moments bit for bit;
+    - each texel counts its own steps for bias correction, so texels first seen late take
+      correctly sized steps;
+    - ``lr`` may be a float or a (C,) per-channel tensor (one table can hold maps with
+      different rates); torch LR schedulers work on either;
+    - a texel whose gradient is NaN or infinite is skipped whole and counted in
+      ``state["rejected_rows"]``; steps are bounded by lr·max(1, (1 − β1)/√(1 − β2)).
+    """
+
+    def __init__(
+        self,
+        params: Iterable,
+        lr: float | Sequence[float] | torch.Tensor = 1e-3,
+        betas: tuple[float, float] = (0.9, 0.999),
+        eps: float = 1e-15,
+    ):
+        super().__init__(params, {"lr": lr, "betas": betas, "eps": eps})
+        for group in self.param_groups:
+            for p in group["params"]:
+                if p.dtype != torch.float32 or p.device.type != "cpu":
+                    raise DTypeError(
+                        f"SparseAdam parameters must be float32 CPU tensors, "
+                        f"got {p.dtype} on {p.device}"
+                    )
+                if p.dim() < 1 or not p.is_contiguous():
+                    raise InvalidArgumentError(
+                        "SparseAdam parameters must be contiguous tables (..., C)"
+                    )
+
+    @torch.no_grad()
+    def step(self, closure=None):
+        loss = None
+        if closure is not None:
+            with torch.enable_grad():
+                loss = closure()
+        for group in self.param_groups:
+            beta1, beta2 = group["betas"]
+            for p in group["params"]:
+                if p.grad is None:
+                    continue
+                channels = p.shape[-1]
+                state = self.state[p]
+                if not state:
+                    state["exp_avg"] = torch.zeros_like(p)
+                    state["exp_avg_sq"] = torch.zeros_like(p)
+                    state["steps"] = torch.zeros(p.numel() // channels, dtype=torch.int32)
+                    state["rejected_rows"] = 0
+                rows, values = _rows_and_values(p, p.grad)
+                if rows.numel() == 0:
+                    continue
+                rejected = _core.sparse_adam_step(
+                    p.detach().numpy().reshape(-1, channels),
+                    state["exp_avg"].numpy().reshape(-1, channels),
+                    state["exp_avg_sq"].numpy().reshape(-1, channels),
+                    state["steps"].numpy(),
+                    rows.numpy(),
+                    values.numpy(),
+                    _channel_lr(group["lr"], channels).numpy(),
+                    float(beta1),
+                    float(beta2),
+                    float(group["eps"]),
+                    num_threads(),
+                )
+                state["rejected_rows"] += rejected
+        return loss

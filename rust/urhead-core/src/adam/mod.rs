@@ -1,0 +1,290 @@
+//! Sparse ("lazy") Adam over the rows of a `(N, C)` parameter table: only rows that
+//! received a gradient are read or written, so a step costs O(touched rows · C), never a
+//! pass over the whole table (a 2048² × 56 UV atlas is 235M floats).
+//!
+//! Per-row step counts give each texel its own bias correction, so a texel first touched
+//! at iteration 10 000 takes a properly sized first step (a global count would make its
+//! first steps ~√(1 − β2^t)/(1 − β1^t)-mis-scaled). Per-channel learning rates let one
+//! table hold maps with different rates (colour, normal, scale, opacity, displacement).
+//!
+//! Robustness (NUMERICS.md): a row whose gradient holds NaN or infinity is rejected whole
+//! (moments, count and parameter untouched) and counted; rows with |g| > 1e18 update in
+//! f64 so g² cannot overflow; every step is clamped to lr·max(1, (1 − β1)/√(1 − β2)), the bound
+//! an exact Adam step satisfies.
+
+use rayon::prelude::*;
+
+use crate::error::{check_len, Error, Result};
+
+/// Rows handled per parallel work item.
+const ROW_CHUNK: usize = 256;
+
+/// Hyper-parameters of one step.
+#[derive(Debug, Clone, Copy)]
+pub struct AdamConfig {
+    pub beta1: f64,
+    pub beta2: f64,
+    pub eps: f64,
+}
+
+impl AdamConfig {
+    fn validate(&self) -> Result<()> {
+        let invalid = |arg, reason: String| Err(Error::Invalid { arg, reason });
+        if !(0.0..1.0).contains(&self.beta1) {
+            return invalid("beta1", format!("must be in [0, 1), got {}", self.beta1));
+        }
+        if !(0.0..1.0).contains(&self.beta2) {
+            return invalid("beta2", format!("must be in [0, 1), got {}", self.beta2));
+        }
+        if !(self.eps > 0.0 && self.eps.is_finite()) {
+            return invalid("eps", format!("must be positive and finite, got {}", self.eps));
+        }
+        Ok(())
+    }
+
+    /// Largest step magnitude per unit learning rate.
+    fn step_bound(&self) -> f64 {
+        1f64.max((1.0 - self.beta1) / (1.0 - self.beta2).sqrt())
+    }
+}
+
+/// The optimiser state of one table, borrowed mutably for a step.
+#[derive(Debug)]
+pub struct SparseAdamState<'a> {
+    /// `(N, C)` parameters.
+    pub param: &'a mut [f32],
+    /// `(N, C)` first moments.
+    pub exp_avg: &'a mut [f32],
+    /// `(N, C)` second moments.
+    pub exp_avg_sq: &'a mut [f32],
+    /// `(N,)` number of accepted steps of each row.
+    pub steps: &'a mut [i32],
+    pub channels: usize,
+}
+
+/// One sparse step. `rows (K,)` must be strictly increasing row indices (a coalesced
+/// sparse gradient), `grads (K, C)` their gradients, `lr (C,)` per-channel rates.
+/// Returns the number of rows rejected for a non-finite gradient.
+pub fn sparse_adam_step(
+    state: &mut SparseAdamState<'_>,
+    rows: &[i64],
+    grads: &[f32],
+    lr: &[f32],
+    config: &AdamConfig,
+) -> Result<usize> {
+    let c = state.channels;
+    if c == 0 {
+        return Err(Error::Shape {
+            arg: "param",
+            expected: "(N, C) with C >= 1".into(),
+            got: "C = 0".into(),
+        });
+    }
+    let n = state.param.len() / c;
+    check_len("param", state.param, n * c, &format!("(N, C) with C = {c}"))?;
+    check_len("exp_avg", state.exp_avg, n * c, &format!("(N, C) = ({n}, {c})"))?;
+    check_len(
+        "exp_avg_sq",
+        state.exp_avg_sq,
+        n * c,
+        &format!("(N, C) = ({n}, {c})"),
+    )?;
+    check_len("steps", state.steps, n, &format!("(N,) = ({n},)"))?;
+    check_len(
+        "grads",
+        grads,
+        rows.len() * c,
+        &format!("(K, C) = ({}, {c})", rows.len()),
+    )?;
+    check_len("lr", lr, c, &format!("(C,) = ({c},)"))?;
+    config.validate()?;
+    if let Some(i) = lr.iter().position(|x| !(*x >= 0.0 && x.is_finite())) {
+        return Err(Error::Invalid {
+            arg: "lr",
+            reason: format!("must be finite and >= 0, got {} at channel {i}", lr[i]),
+        });
+    }
+    for (i, &r) in rows.iter().enumerate() {
+        if r < 0 || r >= n as i64 {
+            return Err(Error::IndexOutOfRange {
+                arg: "rows",
+                index: i,
+                value: r,
+                low: 0,
+                high: n as i64,
+            });
+        }
+        if i > 0 && r <= rows[i - 1] {
+            return Err(Error::Invalid {
+                arg: "rows",
+                reason: format!(
+                    "must be strictly increasing (a coalesced gradient), got {} then {r} at {i}",
+                    rows[i - 1]
+                ),
+            });
+        }
+    }
+
+    // Rows are strictly increasing, so each chunk of `rows` owns a disjoint, ordered set
+    // of table rows; split the tables at the chunk boundaries to hand them out safely.
+    let mut work = Vec::new();
+    let (mut param, mut m, mut v, mut steps) = (
+        &mut state.param[..],
+        &mut state.exp_avg[..],
+        &mut state.exp_avg_sq[..],
+        &mut state.steps[..],
+    );
+    let mut offset = 0usize;
+    for (k, chunk) in rows.chunks(ROW_CHUNK).enumerate() {
+        let end = *chunk.last().expect("chunks are non-empty") as usize + 1;
+        let split = end - offset;
+        let (p_head, p_tail) = std::mem::take(&mut param).split_at_mut(split * c);
+        let (m_head, m_tail) = std::mem::take(&mut m).split_at_mut(split * c);
+        let (v_head, v_tail) = std::mem::take(&mut v).split_at_mut(split * c);
+        let (s_head, s_tail) = std::mem::take(&mut steps).split_at_mut(split);
+        work.push((k, offset, chunk, p_head, m_head, v_head, s_head));
+        (param, m, v, steps) = (p_tail, m_tail, v_tail, s_tail);
+        offset = end;
+    }
+    let rejected: usize = work
+        .into_par_iter()
+        .map(|(k, base, chunk, p, m, v, s)| {
+            let mut rejected = 0;
+            for (i, &row) in chunk.iter().enumerate() {
+                let g = &grads[(k * ROW_CHUNK + i) * c..(k * ROW_CHUNK + i + 1) * c];
+                if g.iter().any(|x| !x.is_finite()) {
+                    rejected += 1;
+                    continue;
+                }
+                let local = row as usize - base;
+                let t = s[local].saturating_add(1);
+                s[local] = t;
+                let (p, m, v) = (
+                    &mut p[local * c..(local + 1) * c],
+                    &mut m[local * c..(local + 1) * c],
+                    &mut v[local * c..(local + 1) * c],
+                );
+                if g.iter().all(|x| x.abs() <= F32_SAFE_GRAD) {
+                    update_row_f32(p, m, v, g, lr, t, config);
+                } else {
+                    update_row_f64(p, m, v, g, lr, t, config);
+                }
+            }
+            rejected
+        })
+        .sum();
+    Ok(rejected)
+}
+
+/// Gradients up to this magnitude square safely in f32 (g² ≤ 1e36 < f32::MAX).
+const F32_SAFE_GRAD: f32 = 1e18;
+
+/// The common case, in f32 (vectorises; bias corrections precomputed per row).
+fn update_row_f32(
+    p: &mut [f32],
+    m: &mut [f32],
+    v: &mut [f32],
+    g: &[f32],
+    lr: &[f32],
+    t: i32,
+    config: &AdamConfig,
+) {
+    // 1 − β in f64 first: 1 − 0.999f32 is off by 1.3e-5 relative in f32.
+    let (b1, b2) = (config.beta1 as f32, config.beta2 as f32);
+    let (one_minus_b1, one_minus_b2) = ((1.0 - config.beta1) as f32, (1.0 - config.beta2) as f32);
+    let inv_correction1 = (1.0 / (1.0 - config.beta1.powi(t))) as f32;
+    let inv_sqrt_correction2 = (1.0 / (1.0 - config.beta2.powi(t)).sqrt()) as f32;
+    let (eps, bound) = (config.eps as f32, config.step_bound() as f32);
+    for ch in 0..g.len() {
+        let mi = b1 * m[ch] + one_minus_b1 * g[ch];
+        let vi = b2 * v[ch] + one_minus_b2 * g[ch] * g[ch];
+        let step = (mi * inv_correction1) / (vi.sqrt() * inv_sqrt_correction2 + eps);
+        m[ch] = mi;
+        v[ch] = vi;
+        p[ch] -= step.clamp(-bound, bound) * lr[ch];
+    }
+}
+
+/// Rows with huge gradients, in f64 so g² cannot overflow; the second moment saturates
+/// at f32::MAX rather than becoming infinite.
+fn update_row_f64(
+    p: &mut [f32],
+    m: &mut [f32],
+    v: &mut [f32],
+    g: &[f32],
+    lr: &[f32],
+    t: i32,
+    config: &AdamConfig,
+) {
+    let correction1 = 1.0 - config.beta1.powi(t);
+    let correction2 = 1.0 - config.beta2.powi(t);
+    let bound = config.step_bound();
+    for ch in 0..g.len() {
+        let gi = g[ch] as f64;
+        let mi = config.beta1 * m[ch] as f64 + (1.0 - config.beta1) * gi;
+        let vi = config.beta2 * v[ch] as f64 + (1.0 - config.beta2) * gi * gi;
+        let step = (mi / correction1) / ((vi / correction2).sqrt() + config.eps);
+        m[ch] = mi as f32;
+        v[ch] = vi.min(f32::MAX as f64) as f32;
+        p[ch] = (p[ch] as f64 - step.clamp(-bound, bound) * lr[ch] as f64) as f32;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const CONFIG: AdamConfig = AdamConfig {
+        beta1: 0.9,
+        beta2: 0.999,
+        eps: 1e-15,
+    };
+
+    fn state(n: usize, c: usize) -> (Vec<f32>, Vec<f32>, Vec<f32>, Vec<i32>) {
+        (
+            (0..n * c).map(|i| i as f32 * 0.25).collect(),
+            vec![0.0; n * c],
+            vec![0.0; n * c],
+            vec![0; n],
+        )
+    }
+
+    #[test]
+    fn first_step_moves_by_lr_against_the_gradient_sign() {
+        let (mut p, mut m, mut v, mut s) = state(10, 2);
+        let before = p.clone();
+        let mut st = SparseAdamState {
+            param: &mut p,
+            exp_avg: &mut m,
+            exp_avg_sq: &mut v,
+            steps: &mut s,
+            channels: 2,
+        };
+        let rejected =
+            sparse_adam_step(&mut st, &[3, 7], &[2.0, -1e-30, 5.0, 0.0], &[0.1, 0.01], &CONFIG).unwrap();
+        assert_eq!(rejected, 0);
+        assert!((before[6] - p[6] - 0.1).abs() < 1e-6);
+        assert_eq!(p[7], before[7]); // |g| = 1e-30 is far below eps: a step of ~1e-17
+        assert_eq!(p[15], before[15]); // zero gradient: no move
+        assert_eq!(s, vec![0, 0, 0, 1, 0, 0, 0, 1, 0, 0]);
+        for row in [0, 1, 2, 4, 5, 6, 8, 9] {
+            assert_eq!(p[row * 2..row * 2 + 2], before[row * 2..row * 2 + 2]);
+        }
+    }
+
+    #[test]
+    fn rejects_unsorted_and_out_of_range_rows() {
+        let (mut p, mut m, mut v, mut s) = state(4, 1);
+        let mut st = SparseAdamState {
+            param: &mut p,
+            exp_avg: &mut m,
+            exp_avg_sq: &mut v,
+            steps: &mut s,
+            channels: 1,
+        };
+        let err = sparse_adam_step(&mut st, &[2, 1], &[1.0, 1.0], &[0.1], &CONFIG).unwrap_err();
+        assert!(matches!(err, Error::Invalid { arg: "rows", .. }));
+        let err = sparse_adam_step(&mut st, &[4], &[1.0], &[0.1], &CONFIG).unwrap_err();
+        assert!(matches!(err, Error::IndexOutOfRange { arg: "rows", .. }));
+    }
+}

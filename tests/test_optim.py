@@ -1,0 +1,130 @@
+"""urhead.optim.SparseAdam against the plain-torch reference, NUMERICS.md case 25, and
+the sparse contract (untouched texels bit-identical, sparse and dense gradients agree)."""
+
+import pytest
+import torch
+
+from urhead.errors import InvalidArgumentError, ShapeError
+from urhead.ops import _reference as ref
+from urhead.optim import SparseAdam
+
+H, W, C = 16, 12, 5
+LR = torch.tensor([5e-4, 1e-3, 5e-3, 5e-2, 1e-5])
+
+
+def sparse_grad(rows, values):
+    index = torch.stack([rows // W, rows % W])
+    return torch.sparse_coo_tensor(index, values, (H, W, C))
+
+
+def test_matches_reference_over_steps_with_changing_texel_sets():
+    g = torch.Generator().manual_seed(0)
+    param = torch.randn(H, W, C, generator=g)
+    # The reference computes in float64 but stores into float32 tables, as the kernel does.
+    expect = param.reshape(-1, C).clone()
+    m = torch.zeros_like(expect)
+    v = torch.zeros_like(expect)
+    steps = torch.zeros(H * W, dtype=torch.int64)
+    opt = SparseAdam([param], lr=LR)
+    for it in range(12):
+        rows = torch.randperm(H * W, generator=g)[: 20 + it * 5].sort().values
+        values = torch.randn(rows.numel(), C, generator=g) * 10 ** (it % 4 - 2)
+        param.grad = sparse_grad(rows, values)
+        opt.step()
+        ref.sparse_adam_step(expect, m, v, steps, rows, values, LR, 0.9, 0.999, 1e-15)
+    assert (param.reshape(-1, C) - expect).abs().max() < 1e-6
+    assert torch.equal(opt.state[param]["steps"].long(), steps)
+
+
+def test_untouched_texels_stay_bit_identical_and_sparse_equals_dense():
+    g = torch.Generator().manual_seed(1)
+    a = torch.randn(H, W, C, generator=g)
+    b = a.clone()
+    before = a.clone()
+    rows = torch.tensor([3, 40, 41, 100])
+    values = torch.randn(4, C, generator=g)
+    a.grad = sparse_grad(rows, values)
+    dense = torch.zeros(H * W, C)
+    dense[rows] = values
+    b.grad = dense.reshape(H, W, C)
+    SparseAdam([a], lr=LR).step()
+    SparseAdam([b], lr=LR).step()
+    assert torch.equal(a, b)
+    untouched = torch.ones(H * W, dtype=torch.bool)
+    untouched[rows] = False
+    assert torch.equal(a.reshape(-1, C)[untouched], before.reshape(-1, C)[untouched])
+    assert not torch.equal(a.reshape(-1, C)[rows], before.reshape(-1, C)[rows])
+
+
+def test_uncoalesced_sparse_gradients_are_summed():
+    # Two texture lookups of one map accumulate as an uncoalesced sparse gradient.
+    a = torch.zeros(H, W, C)
+    b = torch.zeros(H, W, C)
+    rows = torch.tensor([7, 7, 9])
+    values = torch.tensor([[1.0] * C, [2.0] * C, [-1.0] * C])
+    a.grad = sparse_grad(rows, values)
+    b.grad = sparse_grad(torch.tensor([7, 9]), torch.tensor([[3.0] * C, [-1.0] * C]))
+    SparseAdam([a], lr=LR).step()
+    SparseAdam([b], lr=LR).step()
+    assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("bad", [float("inf"), -float("inf"), float("nan")])
+def test_case25_extreme_gradients(bad):
+    param = torch.zeros(H, W, C)
+    before = param.clone()
+    opt = SparseAdam([param], lr=LR)
+    rows = torch.tensor([0, 1, 2, 3, 4])
+    values = torch.zeros(5, C)
+    values[1] = 1e-30
+    values[2] = 1e20
+    values[3, 2] = bad  # one bad channel rejects the whole texel
+    values[4] = -1e20
+    for _ in range(3):
+        param.grad = sparse_grad(rows, values)
+        opt.step()
+    flat = param.reshape(-1, C)
+    assert torch.isfinite(param).all()
+    bound = LR * max(1.0, 0.1 / 0.001**0.5) * 3 + 1e-9
+    assert (flat.abs() <= bound).all()
+    assert torch.equal(flat[0], before.reshape(-1, C)[0])  # zero gradient: no move
+    assert torch.equal(flat[3], before.reshape(-1, C)[3])  # rejected
+    assert torch.equal(flat[5:], before.reshape(-1, C)[5:])  # untouched
+    assert (flat[2] < 0).all() and (flat[4] > 0).all()
+    state = opt.state[param]
+    assert state["rejected_rows"] == 3
+    assert state["steps"][3] == 0 and state["steps"][2] == 3
+    assert torch.isfinite(state["exp_avg_sq"]).all() and torch.isfinite(state["exp_avg"]).all()
+
+
+def test_bad_arguments_are_named():
+    with pytest.raises(ShapeError, match="lr must"):
+        p = torch.zeros(4, 3)
+        p.grad = torch.ones(4, 3)
+        SparseAdam([p], lr=[0.1, 0.2]).step()
+    with pytest.raises(InvalidArgumentError, match="sparse gradient"):
+        p = torch.zeros(4, 3)
+        p.grad = torch.ones(4, 3).to_sparse()
+        SparseAdam([p], lr=0.1).step()
+    with pytest.raises(InvalidArgumentError, match="beta1"):
+        p = torch.zeros(4, 3)
+        p.grad = torch.ones(4, 3)
+        SparseAdam([p], lr=0.1, betas=(1.0, 0.999)).step()
+
+
+def test_deterministic_across_thread_counts(monkeypatch):
+    results = []
+    for n in ("1", "2", "3"):
+        monkeypatch.setenv("URHEAD_NUM_THREADS", n)
+        g = torch.Generator().manual_seed(2)
+        p = torch.randn(64, 64, C, generator=g)
+        opt = SparseAdam([p], lr=LR)
+        for _ in range(3):
+            rows = torch.randperm(64 * 64, generator=g)[:1500].sort().values
+            values = torch.randn(1500, C, generator=g)
+            p.grad = torch.sparse_coo_tensor(
+                torch.stack([rows // 64, rows % 64]), values, (64, 64, C)
+            )
+            opt.step()
+        results.append(p)
+    assert all(torch.equal(r, results[0]) for r in results)
