@@ -1,4 +1,4 @@
-//! Sparse Adam on a 2048² × 56 UV atlas with 20k / 100k touched texels.
+//! Sparse Adam on a 2048² × 56 UV atlas with 20k / 100k touched texels in UV patches.
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
 use urhead_core::adam::{sparse_adam_step, AdamConfig, SparseAdamState};
