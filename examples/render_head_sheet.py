@@ -16,8 +16,7 @@ import numpy as np
 import torch
 from PIL import Image, ImageDraw
 
-from urhead.head import REGION_NAMES
-from urhead.head.procedural import procedural_head
+from urhead.head import REGION_NAMES, procedural_head
 
 SKIN = np.array([0.86, 0.66, 0.55])
 COLOURS = {

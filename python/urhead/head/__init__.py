@@ -11,6 +11,7 @@ from urhead.head.model import (
     region_index,
     save_head,
 )
+from urhead.head.procedural import procedural_head
 from urhead.head.teeth import TeethConfig, add_teeth
 from urhead.head.uv import (
     UvLookup,
@@ -30,6 +31,7 @@ __all__ = [
     "add_teeth",
     "load_flame",
     "load_head",
+    "procedural_head",
     "region_index",
     "save_head",
     "seam_free_vertex_uv",

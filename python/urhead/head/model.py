@@ -141,7 +141,9 @@ class HeadModel:
         shapedirs = self.shapedirs[:, :, columns]
 
         def tensor(a):
-            return torch.tensor(np.ascontiguousarray(a), dtype=dtype)  # a copy: arrays are read-only
+            return torch.tensor(
+                np.ascontiguousarray(a), dtype=dtype
+            )  # a copy: arrays are read-only
 
         return {
             "v_template": tensor(self.v_template),

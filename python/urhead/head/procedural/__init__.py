@@ -222,7 +222,6 @@ def procedural_head(seed: int = 0) -> HeadModel:
         regressor[j, near] = R.min_norm_regressor(verts[near], A.JOINTS[j])
 
     # --- blendshapes -----------------------------------------------------------------------
-    face_like = np.isin(region, [0, 5])  # expressions move face and lips
     shapedirs = np.zeros((V, 3, NUM_SHAPE + NUM_EXPR))
     rigid = [eye_ids[0], eye_ids[1]]
     for k, name in enumerate(IDENTITY_NAMES):
@@ -240,7 +239,7 @@ def procedural_head(seed: int = 0) -> HeadModel:
     skin_mask[skin_ids] = 1
     bag_fade = np.zeros(V)
     bag_fade[bag_ids] = np.r_[np.repeat([0.8, 0.5, 0.25, 0.1, 0, 0, 0], L), 0]
-    expr_mask = (skin_mask * (region != REGION_NAMES.index("scalp")) + bag_fade)[:, None]
+    expr_mask = (skin_mask + bag_fade)[:, None]  # the fields are local; rigid parts stay
     blink_left, blink_right = _blink(verts, skin, grid_ids)
     for k, name in enumerate(EXPRESSION_NAMES):
         col = NUM_SHAPE + k
@@ -260,9 +259,7 @@ def procedural_head(seed: int = 0) -> HeadModel:
         ([-0.05, A.MOUTH_Y - 0.04, 0.05], [0.05, A.EYE_Y + 0.04, 0.1]),
     )
     for k in range(filler.shape[2]):
-        shapedirs[:, :, NUM_SHAPE + len(EXPRESSION_NAMES) + k] = filler[:, :, k] * (
-            expr_mask * face_like[:, None]
-        )
+        shapedirs[:, :, NUM_SHAPE + len(EXPRESSION_NAMES) + k] = filler[:, :, k] * expr_mask
 
     return HeadModel(
         v_template=verts,
