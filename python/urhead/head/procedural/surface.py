@@ -62,7 +62,7 @@ def _directions(theta, phi):
     return np.stack([np.sin(theta) * np.sin(phi), np.cos(theta), np.sin(theta) * np.cos(phi)], -1)
 
 
-def cast(origins, dirs, t_max=0.26, steps=56, sdf=A.head_sdf) -> np.ndarray:
+def cast(origins, dirs, t_max=0.26, steps=40, sdf=A.head_sdf) -> np.ndarray:
     """Distance along each ray to the outermost surface crossing, marching in from
     ``t_max`` and refining by bisection."""
     ts = np.linspace(t_max, 0.0, steps)
@@ -228,4 +228,4 @@ def _neck_rows(last_head_row, phi):
         np.stack([np.sin(phi), np.zeros_like(phi), np.cos(phi)], -1), (*ys.shape, 3)
     )
     origins = np.stack([np.zeros_like(ys), ys, np.full_like(ys, A.NECK_AXIS_Z)], -1)
-    return origins + cast(origins, dirs, t_max=0.12, steps=48)[..., None] * dirs
+    return origins + cast(origins, dirs, t_max=0.12, steps=20)[..., None] * dirs
