@@ -1,7 +1,7 @@
 """The main job. Until the full avatar fit lands, this demonstrates the part of the
-pipeline that exists: fitting per-frame FLAME expression, pose and translation to a
-target sequence through urhead's Rust skinning kernel (forward and hand-written adjoint),
-with a progress bar and an error-against-time plot.
+pipeline that exists: on the built-in procedural head, it fits per-frame expression, pose
+and translation to a target sequence through urhead's Rust skinning kernel (forward and
+hand-written adjoint), with a progress bar and an error-against-time plot.
 
     python examples/fit_subject.py [--out DIR] [--frames N] [--iterations N]
 """
@@ -21,32 +21,8 @@ import matplotlib.pyplot as plt
 import torch
 from tqdm import tqdm
 
+from urhead.head import procedural_head
 from urhead.ops import lbs
-
-
-def synthetic_head_tables(num_verts=5023, num_shape=300, num_expr=100, seed=0):
-    """FLAME-sized skinning tables (smooth random bases on a unit-ish head)."""
-    g = torch.Generator().manual_seed(seed)
-    theta = torch.rand(num_verts, generator=g) * torch.pi
-    phi = torch.rand(num_verts, generator=g) * 2 * torch.pi
-    v_template = 0.1 * torch.stack(
-        [theta.sin() * phi.cos() * 0.8, theta.cos() * 1.1, theta.sin() * phi.sin()], -1
-    )
-    freqs = torch.randn(num_shape + num_expr, 3, generator=g) * 20
-    phases = torch.rand(num_shape + num_expr, generator=g) * 6.28
-    basis = torch.sin(v_template @ freqs.T + phases)  # (V, NB), smooth in space
-    dirs = torch.randn(3, num_shape + num_expr, generator=g)
-    shapedirs = 2e-3 * basis[:, None, :] * dirs[None]
-    posedirs = 1e-3 * torch.randn(36, num_verts * 3, generator=g)
-    joints_at = torch.tensor(
-        [[0, 0, 0], [0, -0.08, -0.02], [0, -0.03, 0.03], [0.03, 0.03, 0.07], [-0.03, 0.03, 0.07]],
-        dtype=torch.float32,
-    )
-    d2 = ((v_template[:, None] - joints_at[None]) ** 2).sum(-1)
-    weights = torch.softmax(-d2 / 1e-3, dim=1)
-    j_regressor = torch.softmax(-d2.T / 1e-4, dim=1)
-    parents = torch.tensor([-1, 0, 1, 1, 1])
-    return v_template, shapedirs, posedirs, j_regressor, parents, weights
 
 
 def main():
@@ -58,17 +34,21 @@ def main():
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
 
-    tables = synthetic_head_tables(seed=args.seed)
+    head = procedural_head(seed=args.seed)
+    tables = head.lbs_tables()
+    num_shape, num_expr = head.num_shape, head.num_expr
     g = torch.Generator().manual_seed(args.seed + 1)
     frames = args.frames
-    shape = torch.randn(1, 300, generator=g).expand(frames, -1)
-    true_expr = torch.randn(frames, 100, generator=g)
-    true_pose = torch.randn(frames, 15, generator=g) * 0.2
+    shape = torch.randn(1, num_shape, generator=g).expand(frames, -1)
+    true_expr = torch.randn(frames, num_expr, generator=g) * 0.5
+    true_pose = torch.randn(frames, 15, generator=g) * 0.15
     true_transl = torch.randn(frames, 3, generator=g) * 0.02
     with torch.no_grad():
-        target = lbs(torch.cat([shape, true_expr], 1), true_pose, *tables, transl=true_transl).verts
+        target = lbs(
+            torch.cat([shape, true_expr], 1), true_pose, **tables, transl=true_transl
+        ).verts
 
-    expr = torch.zeros(frames, 100, requires_grad=True)
+    expr = torch.zeros(frames, num_expr, requires_grad=True)
     pose = torch.zeros(frames, 15, requires_grad=True)
     transl = torch.zeros(frames, 3, requires_grad=True)
     optim = torch.optim.Adam(
@@ -84,7 +64,7 @@ def main():
     start = time.perf_counter()
     bar = tqdm(range(args.iterations), desc="fitting FLAME parameters", unit="it")
     for it in bar:
-        verts = lbs(torch.cat([shape, expr], 1), pose, *tables, transl=transl).verts
+        verts = lbs(torch.cat([shape, expr], 1), pose, **tables, transl=transl).verts
         error_mm = (verts - target).norm(dim=-1).mean() * 1e3
         optim.zero_grad()
         error_mm.backward()
@@ -102,7 +82,9 @@ def main():
     ax.semilogy([h[0] for h in history], [h[2] for h in history])
     ax.set_xlabel("wall-clock seconds")
     ax.set_ylabel("mean vertex error (mm)")
-    ax.set_title(f"FLAME parameter fit, {frames} frames, 5023 vertices")
+    ax.set_title(
+        f"FLAME parameter fit, procedural head, {frames} frames, {head.num_vertices} vertices"
+    )
     ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
     fig.savefig(args.out / "error_vs_time.png", dpi=120)
