@@ -78,7 +78,11 @@ def texture(tex: torch.Tensor, uv: torch.Tensor, *, sparse_grad: bool = True) ->
     ``torch.optim.SparseAdam`` consumes it directly. It lists exactly the texels given a
     non-zero bilinear weight by a sample with a finite UV and a non-zero output gradient;
     no dense (Ht, Wt, C) buffer is ever allocated. ``tex`` should be a leaf tensor (a
-    parameter): most autograd ops cannot propagate a sparse gradient further.
+    parameter): most autograd ops cannot propagate a sparse gradient further. Note that
+    torch's accumulation into ``tex.grad`` keeps the sorted indices but drops the coalesced
+    flag, so ``SparseAdam`` would sort them again; re-mark the gradient to skip that:
+    ``p.grad = torch.sparse_coo_tensor(g._indices(), g._values(), g.shape,
+    is_coalesced=True)`` with ``g = p.grad``.
     """
     dtype = float_dtype("tex", tex)
     check_shape("tex", tex, 3, None, "(Ht, Wt, C)")
