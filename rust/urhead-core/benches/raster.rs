@@ -38,7 +38,8 @@ fn scene() -> Scene {
         let theta = std::f32::consts::PI * i as f32 / n_lat as f32;
         for j in 0..n_lon {
             let phi = 2.0 * std::f32::consts::PI * j as f32 / n_lon as f32;
-            let r = 0.1 * (1.0 + 0.08 * (3.0 * phi).sin() * (2.0 * theta).sin() + 0.05 * (5.0 * theta).cos());
+            let r =
+                0.115 * (1.0 + 0.08 * (3.0 * phi).sin() * (2.0 * theta).sin() + 0.05 * (5.0 * theta).cos());
             verts.extend([
                 r * theta.sin() * phi.cos(),
                 r * 1.2 * theta.cos(),
@@ -79,10 +80,14 @@ fn scene() -> Scene {
     }
 }
 
-/// `(N, CHANNELS) → (N, 3)` and its transpose.
-fn mix_forward(x: &[f32], mix: &[f32]) -> Vec<f32> {
+/// `(N, CHANNELS) → (N, 3)` where covered, a constant background colour elsewhere.
+fn mix_forward(x: &[f32], mix: &[f32], tri_id: &[i32]) -> Vec<f32> {
     x.chunks_exact(CHANNELS)
-        .flat_map(|px| {
+        .zip(tri_id)
+        .flat_map(|(px, &t)| {
+            if t < 0 {
+                return [0.5f32; 3];
+            }
             let mut o = [0.0f32; 3];
             for (k, v) in px.iter().enumerate() {
                 for c in 0..3 {
@@ -94,10 +99,14 @@ fn mix_forward(x: &[f32], mix: &[f32]) -> Vec<f32> {
         .collect()
 }
 
-fn mix_backward(g: &[f32], mix: &[f32]) -> Vec<f32> {
+/// Transpose of [`mix_forward`]: no gradient reaches background samples.
+fn mix_backward(g: &[f32], mix: &[f32], tri_id: &[i32]) -> Vec<f32> {
     g.chunks_exact(3)
-        .flat_map(|g| {
-            (0..CHANNELS).map(move |k| g[0] * mix[k * 3] + g[1] * mix[k * 3 + 1] + g[2] * mix[k * 3 + 2])
+        .zip(tri_id)
+        .flat_map(|(g, &t)| {
+            let on = if t >= 0 { 1.0 } else { 0.0 };
+            (0..CHANNELS)
+                .map(move |k| on * (g[0] * mix[k * 3] + g[1] * mix[k * 3 + 1] + g[2] * mix[k * 3 + 2]))
         })
         .collect()
 }
@@ -107,7 +116,7 @@ fn chain(s: &Scene, g_out: &[f32]) -> usize {
     let raster = rasterize_forward(&s.verts, &s.faces, &s.camera).unwrap();
     let uv = interpolate_forward(&s.uvs, 2, &s.faces, &raster.tri_id, &raster.bary, h, w).unwrap();
     let sampled = texture_forward(&s.tex, TEX, TEX, CHANNELS, &uv).unwrap();
-    let color = mix_forward(&sampled, &s.mix);
+    let color = mix_forward(&sampled, &s.mix, &raster.tri_id);
     let aa = AntialiasInputs {
         color: &color,
         channels: 3,
@@ -120,7 +129,7 @@ fn chain(s: &Scene, g_out: &[f32]) -> usize {
     };
     let _image = antialias_forward(&aa).unwrap();
     let g_aa = antialias_backward(&aa, g_out, true, true).unwrap();
-    let g_sampled = mix_backward(g_aa.v_color.as_ref().unwrap(), &s.mix);
+    let g_sampled = mix_backward(g_aa.v_color.as_ref().unwrap(), &s.mix, &raster.tri_id);
     let g_tex = texture_backward(&s.tex, TEX, TEX, CHANNELS, &uv, &g_sampled, true, true).unwrap();
     let g_interp = interpolate_backward(
         &s.uvs,
@@ -161,9 +170,18 @@ fn bench_raster(c: &mut Criterion) {
     let g_bary = rng.vec::<f32>(h * w * 2, -1.0, 1.0);
     let g_uv_out = rng.vec::<f32>(h * w * 2, -1.0, 1.0);
     let g_rgb = rng.vec::<f32>(h * w * 3, -1.0, 1.0);
-    let g_sampled = rng.vec::<f32>(h * w * CHANNELS, -1.0, 1.0);
+    let mut g_sampled = rng.vec::<f32>(h * w * CHANNELS, -1.0, 1.0);
+    for (g, &t) in g_sampled.chunks_exact_mut(CHANNELS).zip(&raster.tri_id) {
+        if t < 0 {
+            g.fill(0.0);
+        }
+    }
     let uv = interpolate_forward(&s.uvs, 2, &s.faces, &raster.tri_id, &raster.bary, h, w).unwrap();
-    let color = mix_forward(&texture_forward(&s.tex, TEX, TEX, CHANNELS, &uv).unwrap(), &s.mix);
+    let color = mix_forward(
+        &texture_forward(&s.tex, TEX, TEX, CHANNELS, &uv).unwrap(),
+        &s.mix,
+        &raster.tri_id,
+    );
     let aa = AntialiasInputs {
         color: &color,
         channels: 3,

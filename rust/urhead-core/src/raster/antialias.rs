@@ -25,6 +25,7 @@ use super::rasterize::camera_to_world_gradient;
 use super::{check_faces, check_tri_id, TILE_ROWS};
 use crate::camera::Camera;
 use crate::error::{check_finite, check_indices, check_len, Error, Result};
+use crate::memory::zeroed;
 use crate::Real;
 
 /// Crossings up to this far outside the segment (pixels) are accepted and clamped.
@@ -305,7 +306,8 @@ pub fn antialias_forward<T: Real>(inputs: &AntialiasInputs<T>) -> Result<Vec<T>>
     let scene = inputs.scene();
     let blends = scene.all_blends();
     let color = inputs.color;
-    let mut out = color.to_vec();
+    let mut out = zeroed(color.len());
+    out.copy_from_slice(color);
     for b in blends.iter().flatten() {
         let t = b.target();
         let alpha = T::c(b.alpha);
@@ -329,7 +331,8 @@ pub fn antialias_backward<T: Real>(
     let blends = scene.all_blends();
     let color = inputs.color;
     let v_color = need_color.then(|| {
-        let mut v_color = v_out.to_vec();
+        let mut v_color = zeroed(v_out.len());
+        v_color.copy_from_slice(v_out);
         for b in blends.iter().flatten() {
             let t = b.target();
             let alpha = T::c(b.alpha);

@@ -1,21 +1,21 @@
 //! Binning of snapped sub-triangles into screen tiles (full-width bands of `TILE_ROWS`
 //! rows). Each tile's list is in sub-triangle order, i.e. by increasing triangle index.
 
-use super::setup::CoverageTri;
+use super::setup::{CoverageRef, Setup};
 use super::TILE_ROWS;
 
 pub(crate) struct Bins {
     offsets: Vec<usize>,
-    items: Vec<u32>,
+    items: Vec<CoverageRef>,
 }
 
 impl Bins {
     /// Counting sort by tile; serial, since it is linear in the (small) number of entries.
-    pub fn new(coverage: &[CoverageTri], num_tiles: usize) -> Self {
-        let tiles = |c: &CoverageTri| c.y0 / TILE_ROWS..=c.y1 / TILE_ROWS;
+    pub fn new<T>(setup: &Setup<T>, num_tiles: usize) -> Self {
+        let tiles = |y0: u32, y1: u32| y0 as usize / TILE_ROWS..=y1 as usize / TILE_ROWS;
         let mut offsets = vec![0usize; num_tiles + 1];
-        for c in coverage {
-            for t in tiles(c) {
+        for (_, c) in setup.coverage() {
+            for t in tiles(c.y0, c.y1) {
                 offsets[t + 1] += 1;
             }
         }
@@ -23,18 +23,18 @@ impl Bins {
             offsets[t + 1] += offsets[t];
         }
         let mut fill = offsets.clone();
-        let mut items = vec![0u32; offsets[num_tiles]];
-        for (i, c) in coverage.iter().enumerate() {
-            for t in tiles(c) {
-                items[fill[t]] = i as u32;
+        let mut items = vec![[0u32; 2]; offsets[num_tiles]];
+        for (r, c) in setup.coverage() {
+            for t in tiles(c.y0, c.y1) {
+                items[fill[t]] = r;
                 fill[t] += 1;
             }
         }
         Self { offsets, items }
     }
 
-    /// Indices into the coverage list of the sub-triangles overlapping `tile`.
-    pub fn tile(&self, tile: usize) -> &[u32] {
+    /// The sub-triangles overlapping `tile`.
+    pub fn tile(&self, tile: usize) -> &[CoverageRef] {
         &self.items[self.offsets[tile]..self.offsets[tile + 1]]
     }
 }

@@ -7,6 +7,7 @@ use rayon::prelude::*;
 use super::runs::{merge_runs, TriangleRuns};
 use super::{check_faces, check_tri_id, TILE_ROWS};
 use crate::error::{check_finite, check_len, Error, Result};
+use crate::memory::zeroed;
 use crate::Real;
 
 /// Gradients of [`interpolate_backward`]; a field is `Some` exactly when it was asked for.
@@ -71,7 +72,7 @@ pub fn interpolate_forward<T: Real>(
 ) -> Result<Vec<T>> {
     let d = validate(attr, channels, faces, tri_id, bary, height, width)?;
     let c = d.channels;
-    let mut out = vec![T::zero(); d.height * d.width * c];
+    let mut out = zeroed(d.height * d.width * c);
     out.par_chunks_mut(TILE_ROWS * d.width * c)
         .enumerate()
         .for_each(|(tile, out)| {
@@ -157,7 +158,7 @@ pub fn interpolate_backward<T: Real>(
         v_attr
     });
     let v_bary = need_bary.then(|| {
-        let mut v_bary = vec![T::zero(); h * w * 2];
+        let mut v_bary = zeroed(h * w * 2);
         v_bary
             .par_chunks_mut(TILE_ROWS * w * 2)
             .enumerate()

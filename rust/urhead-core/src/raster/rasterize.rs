@@ -6,10 +6,13 @@ use rayon::prelude::*;
 
 use super::bins::Bins;
 use super::runs::{merge_runs, TriangleRuns};
-use super::setup::{barycentrics, barycentrics_vjp, cross, setup_triangles, Hom, Setup, Viewport};
+use super::setup::{
+    barycentrics, barycentrics_vjp, cross, plane_frame, setup_triangles, Hom, Setup, Viewport,
+};
 use super::{check_faces, check_tri_id, RasterImage, TILE_ROWS};
 use crate::camera::Camera;
 use crate::error::{check_finite, check_len, Error, Result};
+use crate::memory::zeroed;
 use crate::Real;
 
 /// Rasterizes `faces (F, 3)` of `verts (V, 3)` (world space) through `camera`.
@@ -56,7 +59,7 @@ pub fn rasterize_backward<T: Real>(
                     if tri < 0 || (g1 == T::zero() && g2 == T::zero()) {
                         continue;
                     }
-                    let Some(planes) = &setup.planes[tri as usize] else {
+                    let Some(planes) = setup.planes(tri as usize) else {
                         continue;
                     };
                     let (ex, ey) = planes.offset(px, py);
@@ -85,21 +88,26 @@ pub fn rasterize_backward<T: Real>(
     );
     let mut v_cam = vec![0.0f64; verts.len()];
     for (f, m) in moments.chunks_exact(9).enumerate() {
-        let Some(planes) = &setup.planes[f] else {
-            continue;
-        };
         if m.iter().all(|x| *x == T::zero()) {
             continue;
         }
+        let Some(planes) = setup.planes(f) else {
+            continue;
+        };
+        let tri = &faces[3 * f..3 * f + 3];
+        let verts = [hom[tri[0] as usize], hom[tri[1] as usize], hom[tri[2] as usize]];
+        let Some(frame) = plane_frame(&verts, planes.origin) else {
+            continue;
+        };
         let m: [[f64; 3]; 3] =
-            [0, 1, 2].map(|i| [0, 1, 2].map(|k| m[3 * i + k].to_f64().unwrap_or(0.0) * planes.scale));
-        let g_hom = hom_gradients(&m, &planes.hom);
+            [0, 1, 2].map(|i| [0, 1, 2].map(|k| m[3 * i + k].to_f64().unwrap_or(0.0) * frame.scale));
+        let g_hom = hom_gradients(&m, &frame.hom);
         let (ox, oy) = (planes.origin[0] as f64, planes.origin[1] as f64);
         for k in 0..3 {
             let g = g_hom[k];
             // h' = (X − ox·W, Y − oy·W, W) and h = (fx·x + cx·z, fy·y + cy·z, z).
             let (gx, gy, gw) = (g[0], g[1], g[2] - ox * g[0] - oy * g[1]);
-            let v = faces[3 * f + k] as usize;
+            let v = tri[k] as usize;
             v_cam[3 * v] += fx * gx;
             v_cam[3 * v + 1] += fy * gy;
             v_cam[3 * v + 2] += cx * gx + cy * gy + gw;
@@ -175,26 +183,29 @@ pub(crate) fn camera_homogeneous<T: Real>(verts: &[T], camera: &Camera) -> Vec<H
 /// skipping depths beyond `far`. The result is independent of scan order and threads.
 pub(crate) fn scan_tiles<T: Real>(setup: &Setup<T>, vp: &Viewport, far: T) -> RasterImage<T> {
     let (w, h) = (vp.width, vp.height);
-    let bins = Bins::new(&setup.coverage, vp.num_tiles());
-    let mut tri_id = vec![-1i32; w * h];
-    let mut bary = vec![T::zero(); 2 * w * h];
-    let mut depth = vec![T::infinity(); w * h];
+    let bins = Bins::new(setup, vp.num_tiles());
+    let mut tri_id = zeroed(w * h);
+    let mut bary = zeroed(2 * w * h);
+    let mut depth = zeroed(w * h);
     tri_id
         .par_chunks_mut(TILE_ROWS * w)
         .zip(bary.par_chunks_mut(2 * TILE_ROWS * w))
         .zip(depth.par_chunks_mut(TILE_ROWS * w))
         .enumerate()
         .for_each(|(tile, ((ids, bs), ds))| {
+            ids.fill(-1);
+            ds.fill(T::infinity());
             let row0 = tile * TILE_ROWS;
             let row_end = row0 + ids.len() / w;
-            for &ci in bins.tile(tile) {
-                let cov = &setup.coverage[ci as usize];
-                let Some(planes) = &setup.planes[cov.tri as usize] else {
+            for &r in bins.tile(tile) {
+                let cov = setup.coverage_at(r);
+                let Some(planes) = setup.planes(cov.tri as usize) else {
                     continue;
                 };
                 let tri = cov.tri as i32;
                 let [e0, e1, e2] = cov.edges;
-                for py in cov.y0.max(row0)..=cov.y1.min(row_end - 1) {
+                let (x_first, x_last) = (cov.x0 as usize, cov.x1 as usize);
+                for py in (cov.y0 as usize).max(row0)..=(cov.y1 as usize).min(row_end - 1) {
                     let (x0, y) = (cov.x0 as i64, py as i64);
                     let mut e = [
                         e0[0] * x0 + e0[1] * y + e0[2],
@@ -202,7 +213,7 @@ pub(crate) fn scan_tiles<T: Real>(setup: &Setup<T>, vp: &Viewport, far: T) -> Ra
                         e2[0] * x0 + e2[1] * y + e2[2],
                     ];
                     let row = (py - row0) * w;
-                    for px in cov.x0..=cov.x1 {
+                    for px in x_first..=x_last {
                         if (e[0] | e[1] | e[2]) >= 0 {
                             let (ex, ey) = planes.offset(px, py);
                             if let Some(b) = barycentrics(planes.raw(ex, ey)) {

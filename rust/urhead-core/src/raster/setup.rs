@@ -52,15 +52,41 @@ impl Viewport {
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct TrianglePlanes<T> {
     /// `λ̃_i = coef[i][0]·ex + coef[i][1]·ey + coef[i][2]` with `(ex, ey)` the pixel centre
-    /// minus `origin`; `coef[i] = scale · (h'_j × h'_k)`.
+    /// minus `origin`; `coef[i] = scale · (h'_j × h'_k)` (see [`PlaneFrame`]).
     pub coef: [[T; 3]; 3],
     /// Linear depth `W` of each vertex.
     pub depth: [T; 3],
-    pub origin: [i64; 2],
+    pub origin: [i32; 2],
+}
+
+/// The f64 quantities the planes are made from, recomputed bit-identically by the
+/// backward pass from the vertices and the origin.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct PlaneFrame {
     /// Vertices shifted to the origin, `h' = (X − ox·W, Y − oy·W, W)`.
     pub hom: [Hom; 3],
-    /// Normalisation of `coef` (max |coefficient| = 1); barycentrics do not depend on it.
+    /// Normalisation of the plane coefficients (largest |coefficient| = 1); barycentrics
+    /// do not depend on it.
     pub scale: f64,
+    normals: [[f64; 3]; 3],
+}
+
+/// `None` for a triangle whose planes vanish or overflow (degenerate as seen from the
+/// camera).
+pub(crate) fn plane_frame(verts: &[Hom; 3], origin: [i32; 2]) -> Option<PlaneFrame> {
+    let (ox, oy) = (origin[0] as f64, origin[1] as f64);
+    let hom = verts.map(|h| [h[0] - ox * h[2], h[1] - oy * h[2], h[2]]);
+    let normals = [
+        cross(&hom[1], &hom[2]),
+        cross(&hom[2], &hom[0]),
+        cross(&hom[0], &hom[1]),
+    ];
+    let largest = normals.iter().flatten().fold(0.0f64, |m, x| m.max(x.abs()));
+    (largest > 0.0 && largest.is_finite()).then(|| PlaneFrame {
+        hom,
+        scale: 1.0 / largest,
+        normals,
+    })
 }
 
 impl<T: Real> TrianglePlanes<T> {
@@ -68,8 +94,8 @@ impl<T: Real> TrianglePlanes<T> {
     #[inline(always)]
     pub fn offset(&self, px: usize, py: usize) -> (T, T) {
         (
-            T::c((px as i64 - self.origin[0]) as f64 + 0.5),
-            T::c((py as i64 - self.origin[1]) as f64 + 0.5),
+            T::c((px as i64 - self.origin[0] as i64) as f64 + 0.5),
+            T::c((py as i64 - self.origin[1] as i64) as f64 + 0.5),
         )
     }
 
@@ -146,27 +172,52 @@ pub(crate) fn barycentrics_vjp<T: Real>(b: &Bary<T>, g: [T; 3]) -> [T; 3] {
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct CoverageTri {
     pub tri: u32,
-    pub x0: usize,
-    pub x1: usize,
-    pub y0: usize,
-    pub y1: usize,
+    pub x0: u32,
+    pub x1: u32,
+    pub y0: u32,
+    pub y1: u32,
     pub edges: [[i64; 3]; 3],
 }
 
-/// All triangles of a mesh after setup: barycentric planes per input triangle (`None` for
-/// culled ones) and the snapped sub-triangles to scan, ordered by triangle index.
+/// All triangles of a mesh after setup, kept in the fixed chunks they were set up in (no
+/// concatenation copies): barycentric planes per input triangle (`None` for culled ones)
+/// and the snapped sub-triangles to scan, in triangle order.
 pub(crate) struct Setup<T> {
-    pub planes: Vec<Option<TrianglePlanes<T>>>,
-    pub coverage: Vec<CoverageTri>,
+    chunks: Vec<SetupChunk<T>>,
 }
 
-/// Planes and sub-triangles of one chunk of faces.
-type ChunkSetup<T> = (Vec<Option<TrianglePlanes<T>>>, Vec<CoverageTri>);
+struct SetupChunk<T> {
+    planes: Vec<Option<TrianglePlanes<T>>>,
+    coverage: Vec<CoverageTri>,
+}
 
-/// Sets up every face of `faces` (indices into `hom`, already validated). Deterministic:
-/// chunk results are concatenated in face order.
+/// Where a sub-triangle is: `[chunk, index in chunk]`.
+pub(crate) type CoverageRef = [u32; 2];
+
+impl<T> Setup<T> {
+    pub fn planes(&self, tri: usize) -> Option<&TrianglePlanes<T>> {
+        self.chunks[tri / SETUP_CHUNK].planes[tri % SETUP_CHUNK].as_ref()
+    }
+
+    /// Every sub-triangle with its reference, in triangle order.
+    pub fn coverage(&self) -> impl Iterator<Item = (CoverageRef, &CoverageTri)> {
+        self.chunks.iter().enumerate().flat_map(|(k, c)| {
+            c.coverage
+                .iter()
+                .enumerate()
+                .map(move |(i, t)| ([k as u32, i as u32], t))
+        })
+    }
+
+    pub fn coverage_at(&self, r: CoverageRef) -> &CoverageTri {
+        &self.chunks[r[0] as usize].coverage[r[1] as usize]
+    }
+}
+
+/// Sets up every face of `faces` (indices into `hom`, already validated), in parallel over
+/// fixed chunks of faces.
 pub(crate) fn setup_triangles<T: Real>(hom: &[Hom], faces: &[i32], vp: &Viewport) -> Setup<T> {
-    let chunks: Vec<ChunkSetup<T>> = faces
+    let chunks = faces
         .par_chunks(3 * SETUP_CHUNK)
         .enumerate()
         .map(|(chunk, faces)| {
@@ -177,16 +228,10 @@ pub(crate) fn setup_triangles<T: Real>(hom: &[Hom], faces: &[i32], vp: &Viewport
                 let verts = [hom[f[0] as usize], hom[f[1] as usize], hom[f[2] as usize]];
                 planes.push(setup_triangle(tri, &verts, vp, &mut coverage));
             }
-            (planes, coverage)
+            SetupChunk { planes, coverage }
         })
         .collect();
-    let mut planes = Vec::with_capacity(faces.len() / 3);
-    let mut coverage = Vec::with_capacity(chunks.iter().map(|c| c.1.len()).sum());
-    for (p, c) in chunks {
-        planes.extend(p);
-        coverage.extend(c);
-    }
-    Setup { planes, coverage }
+    Setup { chunks }
 }
 
 /// Clips, snaps and fans one triangle; pushes its sub-triangles to `coverage`. `None`
@@ -207,7 +252,13 @@ fn setup_triangle<T: Real>(
         fixed[i] = snap(&poly.verts[i], vp);
     }
     let (x0, _, y0, _) = pixel_bbox(&fixed[..poly.len], vp)?;
-    let planes = triangle_planes(verts, [x0 as i64, y0 as i64])?;
+    let origin = [x0 as i32, y0 as i32];
+    let frame = plane_frame(verts, origin)?;
+    let planes = TrianglePlanes {
+        coef: frame.normals.map(|n| n.map(|x| T::c(x * frame.scale))),
+        depth: verts.map(|h| T::c(h[2])),
+        origin,
+    };
     let start = coverage.len();
     for i in 1..poly.len - 1 {
         if let Some(c) = coverage_triangle(tri, [fixed[0], fixed[i], fixed[i + 1]], vp) {
@@ -215,28 +266,6 @@ fn setup_triangle<T: Real>(
         }
     }
     (coverage.len() > start).then_some(planes)
-}
-
-fn triangle_planes<T: Real>(verts: &[Hom; 3], origin: [i64; 2]) -> Option<TrianglePlanes<T>> {
-    let (ox, oy) = (origin[0] as f64, origin[1] as f64);
-    let hom = verts.map(|h| [h[0] - ox * h[2], h[1] - oy * h[2], h[2]]);
-    let normals = [
-        cross(&hom[1], &hom[2]),
-        cross(&hom[2], &hom[0]),
-        cross(&hom[0], &hom[1]),
-    ];
-    let largest = normals.iter().flatten().fold(0.0f64, |m, x| m.max(x.abs()));
-    if !(largest > 0.0 && largest.is_finite()) {
-        return None;
-    }
-    let scale = 1.0 / largest;
-    Some(TrianglePlanes {
-        coef: normals.map(|n| n.map(|x| T::c(x * scale))),
-        depth: verts.map(|h| T::c(h[2])),
-        origin,
-        hom,
-        scale,
-    })
 }
 
 #[inline(always)]
@@ -345,15 +374,15 @@ fn snap(h: &Hom, vp: &Viewport) -> [i64; 2] {
 
 /// Inclusive range of pixels whose centres lie within `[lo, hi]` (sub-pixel units),
 /// clamped to `[0, side)`.
-fn pixel_range(lo: i64, hi: i64, side: usize) -> Option<(usize, usize)> {
+fn pixel_range(lo: i64, hi: i64, side: usize) -> Option<(u32, u32)> {
     let s = 1i64 << SUBPIXEL_BITS;
     let first = -(-(lo - HALF_PIXEL)).div_euclid(s);
     let last = (hi - HALF_PIXEL).div_euclid(s);
     let (first, last) = (first.max(0), last.min(side as i64 - 1));
-    (first <= last).then_some((first as usize, last as usize))
+    (first <= last).then_some((first as u32, last as u32))
 }
 
-fn pixel_bbox(points: &[[i64; 2]], vp: &Viewport) -> Option<(usize, usize, usize, usize)> {
+fn pixel_bbox(points: &[[i64; 2]], vp: &Viewport) -> Option<(u32, u32, u32, u32)> {
     let min_max = |axis: usize| {
         points.iter().fold((i64::MAX, i64::MIN), |(lo, hi), p| {
             (lo.min(p[axis]), hi.max(p[axis]))
@@ -424,7 +453,7 @@ mod tests {
                 for px in c.x0..=c.x1 {
                     let e = c.edges.map(|e| e[0] * px as i64 + e[1] * py as i64 + e[2]);
                     if e.iter().all(|&x| x >= 0) {
-                        out.push(py * v.width + px);
+                        out.push(py as usize * v.width + px as usize);
                     }
                 }
             }

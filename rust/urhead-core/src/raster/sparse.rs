@@ -14,7 +14,8 @@
 
 use rayon::prelude::*;
 
-use super::texture::{bilinear_taps, TexShape, SAMPLE_CHUNK};
+use super::texture::{bilinear_taps, uv_gradient, TexShape, SAMPLE_CHUNK};
+use crate::memory::zeroed;
 use crate::Real;
 
 /// Target number of texel buckets (fewer for small textures).
@@ -59,23 +60,44 @@ impl Buckets {
     }
 }
 
-pub(crate) fn sparse_texel_gradient<T: Real>(shape: &TexShape, uv: &[T], v_out: &[T]) -> SparseTexels<T> {
+/// The sparse texel gradient of `v_out (N, C)`; fills `v_uv (N, 2)` in the same pass over
+/// the samples when given (it reads the same texels and output gradients).
+pub(crate) fn sparse_texel_gradient<T: Real>(
+    shape: &TexShape,
+    tex: &[T],
+    uv: &[T],
+    v_out: &[T],
+    v_uv: Option<&mut [T]>,
+) -> SparseTexels<T> {
     let c = shape.channels;
     let n = uv.len() / 2;
     let buckets = Buckets::new(shape);
+    let num_chunks = n.div_ceil(SAMPLE_CHUNK);
+    let mut v_uv_chunks: Vec<Option<&mut [T]>> = match v_uv {
+        Some(v) => v.chunks_mut(2 * SAMPLE_CHUNK).map(Some).collect(),
+        None => (0..num_chunks).map(|_| None).collect(),
+    };
 
     // 1. Entries per sample chunk, partitioned by bucket (stable counting sort).
-    let chunks: Vec<(Vec<Entry<T>>, Vec<usize>)> = (0..n.div_ceil(SAMPLE_CHUNK))
-        .into_par_iter()
-        .map(|chunk| {
-            let mut entries = Vec::new();
-            for s in chunk * SAMPLE_CHUNK..((chunk + 1) * SAMPLE_CHUNK).min(n) {
-                if v_out[s * c..(s + 1) * c].iter().all(|g| *g == T::zero()) {
+    let chunks: Vec<(Vec<Entry<T>>, Vec<usize>)> = v_uv_chunks
+        .par_iter_mut()
+        .enumerate()
+        .map(|(chunk, v_uv)| {
+            let first = chunk * SAMPLE_CHUNK;
+            let last = (first + SAMPLE_CHUNK).min(n);
+            let mut entries = Vec::with_capacity(4 * (last - first));
+            for s in first..last {
+                let g = &v_out[s * c..(s + 1) * c];
+                if g.iter().all(|g| *g == T::zero()) {
                     continue;
                 }
                 let Some(t) = bilinear_taps(uv[2 * s], uv[2 * s + 1], shape) else {
                     continue;
                 };
+                if let Some(v_uv) = v_uv.as_deref_mut() {
+                    v_uv[2 * (s - first)..2 * (s - first) + 2]
+                        .copy_from_slice(&uv_gradient(&t, tex, g, shape));
+                }
                 for k in 0..4 {
                     if t.weight[k] != T::zero() {
                         entries.push(Entry {
@@ -109,9 +131,10 @@ pub(crate) fn sparse_texel_gradient<T: Real>(shape: &TexShape, uv: &[T], v_out: 
     let unique: Vec<usize> = sorted.iter().map(|e| count_unique(e)).collect();
     let nnz: usize = unique.iter().sum();
 
-    // 3. Sum each texel's entries in sample order into disjoint slices of the output.
-    let mut indices = vec![0i64; 2 * nnz];
-    let mut values = vec![T::zero(); nnz * c];
+    // 3. Sum each texel's entries in sample order into disjoint slices of the output. The
+    // first entry is written, not added, so fresh output pages are never read first.
+    let mut indices: Vec<i64> = zeroed(2 * nnz);
+    let mut values: Vec<T> = zeroed(nnz * c);
     let (rows, cols) = indices.split_at_mut(nnz);
     let mut parts = Vec::with_capacity(buckets.count);
     let (mut rows, mut cols, mut vals) = (rows, cols, values.as_mut_slice());
@@ -126,22 +149,21 @@ pub(crate) fn sparse_texel_gradient<T: Real>(shape: &TexShape, uv: &[T], v_out: 
         .into_par_iter()
         .zip(sorted.par_iter())
         .for_each(|((rows, cols, vals), entries)| {
-            let mut out = 0usize;
-            let mut i = 0usize;
-            while i < entries.len() {
-                let texel = entries[i].texel;
-                rows[out] = (texel as usize / shape.width) as i64;
-                cols[out] = (texel as usize % shape.width) as i64;
-                let dst = &mut vals[out * c..(out + 1) * c];
-                while i < entries.len() && entries[i].texel == texel {
-                    let e = &entries[i];
-                    let g = &v_out[e.sample as usize * c..(e.sample as usize + 1) * c];
-                    for (d, gk) in dst.iter_mut().zip(g) {
-                        *d += e.weight * *gk;
-                    }
-                    i += 1;
+            let runs = entries.chunk_by(|a, b| a.texel == b.texel);
+            let slots = rows.iter_mut().zip(cols.iter_mut()).zip(vals.chunks_exact_mut(c));
+            for (run, ((r, cl), dst)) in runs.zip(slots) {
+                let texel = run[0].texel as usize;
+                *r = (texel / shape.width) as i64;
+                *cl = (texel % shape.width) as i64;
+                let row = |e: &Entry<T>| &v_out[e.sample as usize * c..(e.sample as usize + 1) * c];
+                for (d, g) in dst.iter_mut().zip(row(&run[0])) {
+                    *d = run[0].weight * *g;
                 }
-                out += 1;
+                for e in &run[1..] {
+                    for (d, g) in dst.iter_mut().zip(row(e)) {
+                        *d += e.weight * *g;
+                    }
+                }
             }
         });
     SparseTexels { indices, values, nnz }
@@ -157,7 +179,7 @@ fn partition<T: Copy>(entries: Vec<Entry<T>>, buckets: &Buckets) -> (Vec<Entry<T
         offsets[b + 1] += offsets[b];
     }
     let mut fill = offsets.clone();
-    let mut out = entries.clone();
+    let mut out = entries.clone(); // every slot is overwritten below
     for e in entries {
         let b = buckets.of(e.texel);
         out[fill[b]] = e;

@@ -13,6 +13,7 @@ use rayon::prelude::*;
 
 use super::sparse::{sparse_texel_gradient, SparseTexels};
 use crate::error::{check_finite, check_len, checked_size, Error, Result};
+use crate::memory::zeroed;
 use crate::Real;
 
 /// Samples per parallel work item.
@@ -74,6 +75,22 @@ fn axis<T: Real>(x: T, n: usize) -> (usize, usize, T) {
     )
 }
 
+/// Gradient of one sample's `(u, v)` given its output gradient `g (C)`: the bilinear
+/// derivative along x and y, times `dx/du = Wt` and `dy/dv = −Ht`. Clamped taps coincide,
+/// so the gradient is zero outside the texel centres.
+#[inline(always)]
+pub(crate) fn uv_gradient<T: Real>(t: &Taps<T>, tex: &[T], g: &[T], shape: &TexShape) -> [T; 2] {
+    let c = shape.channels;
+    let rows = t.texel.map(|k| &tex[k as usize * c..(k as usize + 1) * c]);
+    let (gx, gy) = (T::one() - t.fx, T::one() - t.fy);
+    let (mut d_fx, mut d_fy) = (T::zero(), T::zero());
+    for k in 0..c {
+        d_fx += g[k] * (gy * (rows[1][k] - rows[0][k]) + t.fy * (rows[3][k] - rows[2][k]));
+        d_fy += g[k] * (gx * (rows[2][k] - rows[0][k]) + t.fx * (rows[3][k] - rows[1][k]));
+    }
+    [d_fx * T::c(shape.width as f64), -d_fy * T::c(shape.height as f64)]
+}
+
 pub(crate) fn validate<T: Real>(tex: &[T], shape: &TexShape, uv: &[T]) -> Result<usize> {
     if shape.height == 0 || shape.width == 0 || shape.channels == 0 {
         return Err(Error::Shape {
@@ -118,7 +135,7 @@ pub fn texture_forward<T: Real>(
     };
     let n = validate(tex, &shape, uv)?;
     let c = channels;
-    let mut out = vec![T::zero(); n * c];
+    let mut out = zeroed(n * c);
     let non_finite = out
         .par_chunks_mut(SAMPLE_CHUNK * c)
         .enumerate()
@@ -173,31 +190,24 @@ pub fn texture_backward<T: Real>(
     let n = validate(tex, &shape, uv)?;
     let c = channels;
     check_len("v_out", v_out, n * c, &format!("(N, C) = ({n}, {c})"))?;
-    let v_tex = need_tex.then(|| sparse_texel_gradient(&shape, uv, v_out));
-    let v_uv = need_uv.then(|| {
-        let mut v_uv = vec![T::zero(); 2 * n];
-        v_uv.par_chunks_mut(2 * SAMPLE_CHUNK)
-            .enumerate()
-            .for_each(|(chunk, v_uv)| {
-                for (i, d) in v_uv.chunks_exact_mut(2).enumerate() {
-                    let s = chunk * SAMPLE_CHUNK + i;
-                    let g = &v_out[s * c..(s + 1) * c];
-                    let Some(t) = bilinear_taps(uv[2 * s], uv[2 * s + 1], &shape) else {
-                        continue;
-                    };
-                    let rows = t.texel.map(|k| &tex[k as usize * c..(k as usize + 1) * c]);
-                    let (gx, gy) = (T::one() - t.fx, T::one() - t.fy);
-                    let (mut d_fx, mut d_fy) = (T::zero(), T::zero());
-                    for k in 0..c {
-                        d_fx += g[k] * (gy * (rows[1][k] - rows[0][k]) + t.fy * (rows[3][k] - rows[2][k]));
-                        d_fy += g[k] * (gx * (rows[2][k] - rows[0][k]) + t.fx * (rows[3][k] - rows[1][k]));
+    let mut v_uv = need_uv.then(|| zeroed(2 * n));
+    let v_tex = if need_tex {
+        Some(sparse_texel_gradient(&shape, tex, uv, v_out, v_uv.as_deref_mut()))
+    } else {
+        if let Some(v_uv) = v_uv.as_deref_mut() {
+            v_uv.par_chunks_mut(2 * SAMPLE_CHUNK)
+                .enumerate()
+                .for_each(|(chunk, v_uv)| {
+                    for (i, d) in v_uv.chunks_exact_mut(2).enumerate() {
+                        let s = chunk * SAMPLE_CHUNK + i;
+                        let g = &v_out[s * c..(s + 1) * c];
+                        if let Some(t) = bilinear_taps(uv[2 * s], uv[2 * s + 1], &shape) {
+                            d.copy_from_slice(&uv_gradient(&t, tex, g, &shape));
+                        }
                     }
-                    // x = u·Wt − 0.5 and y = (1 − v)·Ht − 0.5.
-                    d[0] = d_fx * T::c(width as f64);
-                    d[1] = -d_fy * T::c(height as f64);
-                }
-            });
-        v_uv
-    });
+                });
+        }
+        None
+    };
     Ok(TextureGrads { v_tex, v_uv })
 }
