@@ -6,6 +6,7 @@
 //! gradient sparse). The other benchmarks time each op alone.
 
 use criterion::{criterion_group, criterion_main, Criterion};
+use rayon::prelude::*;
 use urhead_core::raster::{
     antialias_backward, antialias_forward, edge_topology, interpolate_backward, interpolate_forward,
     rasterize_backward, rasterize_forward, texture_backward, texture_forward, AntialiasInputs,
@@ -53,7 +54,7 @@ fn scene() -> Scene {
         for j in 0..n_lon {
             let (a, b) = (i * n_lon + j, i * n_lon + (j + 1) % n_lon);
             let (c, d) = ((i + 1) * n_lon + j, (i + 1) * n_lon + (j + 1) % n_lon);
-            faces.extend([a, c, b, b, c, d].map(|x| x as i32));
+            faces.extend([a, c, b, b, c, d]);
         }
     }
     let f = 900.0;
@@ -80,35 +81,40 @@ fn scene() -> Scene {
     }
 }
 
-/// `(N, CHANNELS) → (N, 3)` where covered, a constant background colour elsewhere.
+/// `(N, CHANNELS) → (N, 3)` where covered, a constant background colour elsewhere
+/// (parallel, like the SH evaluation it stands in for).
 fn mix_forward(x: &[f32], mix: &[f32], tri_id: &[i32]) -> Vec<f32> {
-    x.chunks_exact(CHANNELS)
-        .zip(tri_id)
-        .flat_map(|(px, &t)| {
-            if t < 0 {
-                return [0.5f32; 3];
-            }
-            let mut o = [0.0f32; 3];
-            for (k, v) in px.iter().enumerate() {
-                for c in 0..3 {
-                    o[c] += v * mix[k * 3 + c];
+    let mut out = vec![0.5f32; tri_id.len() * 3];
+    out.par_chunks_mut(3)
+        .zip(x.par_chunks_exact(CHANNELS))
+        .zip(tri_id.par_iter())
+        .for_each(|((o, px), &t)| {
+            if t >= 0 {
+                o.fill(0.0);
+                for (k, v) in px.iter().enumerate() {
+                    for c in 0..3 {
+                        o[c] += v * mix[k * 3 + c];
+                    }
                 }
             }
-            o
-        })
-        .collect()
+        });
+    out
 }
 
 /// Transpose of [`mix_forward`]: no gradient reaches background samples.
 fn mix_backward(g: &[f32], mix: &[f32], tri_id: &[i32]) -> Vec<f32> {
-    g.chunks_exact(3)
-        .zip(tri_id)
-        .flat_map(|(g, &t)| {
-            let on = if t >= 0 { 1.0 } else { 0.0 };
-            (0..CHANNELS)
-                .map(move |k| on * (g[0] * mix[k * 3] + g[1] * mix[k * 3 + 1] + g[2] * mix[k * 3 + 2]))
-        })
-        .collect()
+    let mut out = vec![0.0f32; tri_id.len() * CHANNELS];
+    out.par_chunks_mut(CHANNELS)
+        .zip(g.par_chunks_exact(3))
+        .zip(tri_id.par_iter())
+        .for_each(|((o, g), &t)| {
+            if t >= 0 {
+                for (k, o) in o.iter_mut().enumerate() {
+                    *o = g[0] * mix[k * 3] + g[1] * mix[k * 3 + 1] + g[2] * mix[k * 3 + 2];
+                }
+            }
+        });
+    out
 }
 
 fn chain(s: &Scene, g_out: &[f32]) -> usize {

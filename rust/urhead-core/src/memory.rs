@@ -44,6 +44,28 @@ fn madvise_huge(start: usize, len: usize) {
 #[cfg(not(target_os = "linux"))]
 fn madvise_huge(_start: usize, _len: usize) {}
 
+/// Hints the CPU to start loading the cache lines of `data` (random-access kernels issue
+/// it a few items ahead, so several memory reads overlap).
+#[inline(always)]
+pub fn prefetch<T>(data: &[T]) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        let start = data.as_ptr() as usize;
+        let end = start + std::mem::size_of_val(data);
+        let mut line = start & !63;
+        while line < end {
+            // SAFETY: a prefetch is only a hint; it never faults, even on a bad address, and
+            // here the address is inside `data`.
+            unsafe {
+                std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(line as *const i8);
+            }
+            line += 64;
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = data;
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

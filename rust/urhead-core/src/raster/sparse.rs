@@ -14,8 +14,10 @@
 
 use rayon::prelude::*;
 
-use super::texture::{bilinear_taps, uv_gradient, TexShape, SAMPLE_CHUNK};
-use crate::memory::zeroed;
+use super::texture::{
+    gradient_taps, uv_gradient, uv_gradient_ahead, TexShape, PREFETCH_DISTANCE, SAMPLE_CHUNK,
+};
+use crate::memory::{prefetch, zeroed};
 use crate::Real;
 
 /// Target number of texel buckets (fewer for small textures).
@@ -86,17 +88,16 @@ pub(crate) fn sparse_texel_gradient<T: Real>(
             let first = chunk * SAMPLE_CHUNK;
             let last = (first + SAMPLE_CHUNK).min(n);
             let mut entries = Vec::with_capacity(4 * (last - first));
-            for s in first..last {
-                let g = &v_out[s * c..(s + 1) * c];
-                if g.iter().all(|g| *g == T::zero()) {
-                    continue;
-                }
-                let Some(t) = bilinear_taps(uv[2 * s], uv[2 * s + 1], shape) else {
+            let taps = gradient_taps(shape, uv, v_out, first, last);
+            for (i, t) in taps.iter().enumerate() {
+                let Some(t) = t else {
                     continue;
                 };
+                let s = first + i;
                 if let Some(v_uv) = v_uv.as_deref_mut() {
-                    v_uv[2 * (s - first)..2 * (s - first) + 2]
-                        .copy_from_slice(&uv_gradient(&t, tex, g, shape));
+                    uv_gradient_ahead(&taps, i, tex, c);
+                    let g = &v_out[s * c..(s + 1) * c];
+                    v_uv[2 * i..2 * i + 2].copy_from_slice(&uv_gradient(t, tex, g, shape));
                 }
                 for k in 0..4 {
                     if t.weight[k] != T::zero() {
@@ -151,11 +152,16 @@ pub(crate) fn sparse_texel_gradient<T: Real>(
         .for_each(|((rows, cols, vals), entries)| {
             let runs = entries.chunk_by(|a, b| a.texel == b.texel);
             let slots = rows.iter_mut().zip(cols.iter_mut()).zip(vals.chunks_exact_mut(c));
+            let row = |e: &Entry<T>| &v_out[e.sample as usize * c..(e.sample as usize + 1) * c];
+            let mut next = 0; // index of the entry after the current run
             for (run, ((r, cl), dst)) in runs.zip(slots) {
+                next += run.len();
+                if let Some(ahead) = entries.get(next + PREFETCH_DISTANCE) {
+                    prefetch(row(ahead));
+                }
                 let texel = run[0].texel as usize;
                 *r = (texel / shape.width) as i64;
                 *cl = (texel % shape.width) as i64;
-                let row = |e: &Entry<T>| &v_out[e.sample as usize * c..(e.sample as usize + 1) * c];
                 for (d, g) in dst.iter_mut().zip(row(&run[0])) {
                     *d = run[0].weight * *g;
                 }

@@ -13,11 +13,13 @@ use rayon::prelude::*;
 
 use super::sparse::{sparse_texel_gradient, SparseTexels};
 use crate::error::{check_finite, check_len, checked_size, Error, Result};
-use crate::memory::zeroed;
+use crate::memory::{prefetch, zeroed};
 use crate::Real;
 
 /// Samples per parallel work item.
 pub(crate) const SAMPLE_CHUNK: usize = 2048;
+/// How many samples ahead texel rows are prefetched.
+pub(crate) const PREFETCH_DISTANCE: usize = 8;
 /// Texel indices are stored as u32.
 const MAX_TEXELS: usize = u32::MAX as usize;
 
@@ -59,6 +61,34 @@ pub(crate) fn bilinear_taps<T: Real>(u: T, v: T, shape: &TexShape) -> Option<Tap
     })
 }
 
+/// `o = Σ_k w_k·rows_k`, in blocks of 8 channels so the compiler emits full vectors.
+#[inline(always)]
+fn blend<T: Real>(o: &mut [T], rows: [&[T]; 4], w: [T; 4]) {
+    let c = o.len();
+    let rows = rows.map(|r| &r[..c]);
+    let full = c / 8 * 8;
+    for k0 in (0..full).step_by(8) {
+        let mut acc = [T::zero(); 8];
+        for j in 0..8 {
+            let k = k0 + j;
+            acc[j] = w[0] * rows[0][k] + w[1] * rows[1][k] + w[2] * rows[2][k] + w[3] * rows[3][k];
+        }
+        o[k0..k0 + 8].copy_from_slice(&acc);
+    }
+    for k in full..c {
+        o[k] = w[0] * rows[0][k] + w[1] * rows[1][k] + w[2] * rows[2][k] + w[3] * rows[3][k];
+    }
+}
+
+/// Starts loading a sample's texel rows: the two taps of a row are adjacent in memory.
+#[inline(always)]
+pub(crate) fn prefetch_taps<T: Real>(t: &Taps<T>, tex: &[T], c: usize) {
+    for pair in [[t.texel[0], t.texel[1]], [t.texel[2], t.texel[3]]] {
+        let (lo, hi) = (pair[0].min(pair[1]) as usize, pair[0].max(pair[1]) as usize);
+        prefetch(&tex[lo * c..(hi + 1) * c]);
+    }
+}
+
 /// Continuous texel coordinate → the two clamped texel indices and the fraction. The
 /// coordinate is first limited to [−1, n], where both taps are already the edge texel, so
 /// huge or infinite-product coordinates cannot overflow the index.
@@ -82,13 +112,54 @@ fn axis<T: Real>(x: T, n: usize) -> (usize, usize, T) {
 pub(crate) fn uv_gradient<T: Real>(t: &Taps<T>, tex: &[T], g: &[T], shape: &TexShape) -> [T; 2] {
     let c = shape.channels;
     let rows = t.texel.map(|k| &tex[k as usize * c..(k as usize + 1) * c]);
+    let g = &g[..c];
     let (gx, gy) = (T::one() - t.fx, T::one() - t.fy);
-    let (mut d_fx, mut d_fy) = (T::zero(), T::zero());
+    // Eight independent partial sums per axis (a fixed order, so still deterministic) let
+    // the channel loop vectorise.
+    let (mut d_fx, mut d_fy) = ([T::zero(); 8], [T::zero(); 8]);
     for k in 0..c {
-        d_fx += g[k] * (gy * (rows[1][k] - rows[0][k]) + t.fy * (rows[3][k] - rows[2][k]));
-        d_fy += g[k] * (gx * (rows[2][k] - rows[0][k]) + t.fx * (rows[3][k] - rows[1][k]));
+        let lane = k % 8;
+        d_fx[lane] += g[k] * (gy * (rows[1][k] - rows[0][k]) + t.fy * (rows[3][k] - rows[2][k]));
+        d_fy[lane] += g[k] * (gx * (rows[2][k] - rows[0][k]) + t.fx * (rows[3][k] - rows[1][k]));
     }
+    let (d_fx, d_fy) = (sum8(d_fx), sum8(d_fy));
     [d_fx * T::c(shape.width as f64), -d_fy * T::c(shape.height as f64)]
+}
+
+/// Taps of samples `first..last` that received a non-zero output gradient (`None` for the
+/// others and for non-finite coordinates): the samples both backward passes visit.
+pub(crate) fn gradient_taps<T: Real>(
+    shape: &TexShape,
+    uv: &[T],
+    v_out: &[T],
+    first: usize,
+    last: usize,
+) -> Vec<Option<Taps<T>>> {
+    let c = shape.channels;
+    (first..last)
+        .map(|s| {
+            let zero = v_out[s * c..(s + 1) * c]
+                .iter()
+                .fold(true, |z, g| z & (*g == T::zero()));
+            (!zero)
+                .then(|| bilinear_taps(uv[2 * s], uv[2 * s + 1], shape))
+                .flatten()
+        })
+        .collect()
+}
+
+/// Prefetches the texels of the sample [`PREFETCH_DISTANCE`] after `i`, if any.
+#[inline(always)]
+pub(crate) fn uv_gradient_ahead<T: Real>(taps: &[Option<Taps<T>>], i: usize, tex: &[T], c: usize) {
+    if let Some(Some(ahead)) = taps.get(i + PREFETCH_DISTANCE) {
+        prefetch_taps(ahead, tex, c);
+    }
+}
+
+/// Pairwise sum of eight lanes, in a fixed order.
+#[inline(always)]
+fn sum8<T: Real>(a: [T; 8]) -> T {
+    ((a[0] + a[4]) + (a[2] + a[6])) + ((a[1] + a[5]) + (a[3] + a[7]))
 }
 
 pub(crate) fn validate<T: Real>(tex: &[T], shape: &TexShape, uv: &[T]) -> Result<usize> {
@@ -140,20 +211,28 @@ pub fn texture_forward<T: Real>(
         .par_chunks_mut(SAMPLE_CHUNK * c)
         .enumerate()
         .map(|(chunk, out)| {
-            let mut bad = false;
+            let first = chunk * SAMPLE_CHUNK;
+            let uv = &uv[2 * first..2 * (first + out.len() / c)];
+            let taps: Vec<Option<Taps<T>>> = uv
+                .chunks_exact(2)
+                .map(|p| bilinear_taps(p[0], p[1], &shape))
+                .collect();
             for (i, o) in out.chunks_exact_mut(c).enumerate() {
-                let s = chunk * SAMPLE_CHUNK + i;
-                let Some(t) = bilinear_taps(uv[2 * s], uv[2 * s + 1], &shape) else {
-                    continue;
-                };
-                let rows = t.texel.map(|k| &tex[k as usize * c..(k as usize + 1) * c]);
-                let [w0, w1, w2, w3] = t.weight;
-                for k in 0..c {
-                    o[k] = w0 * rows[0][k] + w1 * rows[1][k] + w2 * rows[2][k] + w3 * rows[3][k];
+                if let Some(Some(ahead)) = taps.get(i + PREFETCH_DISTANCE) {
+                    prefetch_taps(ahead, tex, c);
                 }
-                bad |= o.iter().any(|x| !x.is_finite());
+                if let Some(t) = &taps[i] {
+                    blend(
+                        o,
+                        t.texel.map(|k| &tex[k as usize * c..(k as usize + 1) * c]),
+                        t.weight,
+                    );
+                }
             }
-            bad
+            // x·0 ≠ 0 exactly for NaN and ±inf; an OR-reduction vectorises (a float sum or
+            // an early-exit `any` would not).
+            out.iter()
+                .fold(false, |bad, &x| bad | (x * T::zero() != T::zero()))
         })
         .reduce(|| false, |a, b| a | b);
     if non_finite {
@@ -198,11 +277,13 @@ pub fn texture_backward<T: Real>(
             v_uv.par_chunks_mut(2 * SAMPLE_CHUNK)
                 .enumerate()
                 .for_each(|(chunk, v_uv)| {
-                    for (i, d) in v_uv.chunks_exact_mut(2).enumerate() {
-                        let s = chunk * SAMPLE_CHUNK + i;
-                        let g = &v_out[s * c..(s + 1) * c];
-                        if let Some(t) = bilinear_taps(uv[2 * s], uv[2 * s + 1], &shape) {
-                            d.copy_from_slice(&uv_gradient(&t, tex, g, &shape));
+                    let first = chunk * SAMPLE_CHUNK;
+                    let taps = gradient_taps(&shape, uv, v_out, first, first + v_uv.len() / 2);
+                    for (i, t) in taps.iter().enumerate() {
+                        if let Some(t) = t {
+                            uv_gradient_ahead(&taps, i, tex, c);
+                            let g = &v_out[(first + i) * c..(first + i + 1) * c];
+                            v_uv[2 * i..2 * i + 2].copy_from_slice(&uv_gradient(t, tex, g, &shape));
                         }
                     }
                 });
