@@ -10,7 +10,9 @@ pub mod camera;
 pub mod error;
 pub mod lbs;
 pub mod mat3;
+pub mod memory;
 pub mod parallel;
+pub mod raster;
 pub mod real;
 pub mod testing;
 

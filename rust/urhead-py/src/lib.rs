@@ -8,6 +8,7 @@ mod camera;
 mod errors;
 mod lbs;
 mod pool;
+mod raster;
 
 use pyo3::prelude::*;
 
@@ -28,5 +29,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(lbs::lbs_backward_f32, m)?)?;
     m.add_function(wrap_pyfunction!(lbs::lbs_forward_f64, m)?)?;
     m.add_function(wrap_pyfunction!(lbs::lbs_backward_f64, m)?)?;
+    raster::register(m)?;
     Ok(())
 }
