@@ -11,6 +11,7 @@ pub mod lbs;
 pub mod mat3;
 pub mod parallel;
 pub mod real;
+pub mod splat;
 pub mod testing;
 
 pub use camera::Camera;

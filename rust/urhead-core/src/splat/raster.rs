@@ -1,0 +1,340 @@
+//! Tile compositing, forward. The per-tile state (transmittance, activity, depth limit of
+//! 256 pixels) lives in 32 eight-lane slots; each Gaussian visits only the rows of the tile
+//! its cut-off ellipse reaches and, per row, only the 8-pixel chunks its x-extent reaches.
+//! [`visit_gaussian`] and [`sample`] are the single source of every compositing decision:
+//! the backward replays them.
+
+use rayon::prelude::*;
+
+use super::binning::Binning;
+use super::lanes::{Lanes, WIDTH};
+use super::{RasterInputs, SplatReal, ALPHA_MAX, ALPHA_MIN, TILE, T_STOP};
+use crate::error::Result;
+use crate::Real;
+use num_traits::{One, Zero};
+
+/// Eight-lane slots per tile: 16 rows × 2 chunks.
+pub(super) const SLOTS: usize = TILE * TILE / WIDTH;
+const CHUNKS_PER_ROW: usize = TILE / WIDTH;
+
+/// Per-Gaussian constants of the pixel loop, derived from the rasterizer's inputs.
+#[derive(Debug, Clone, Copy, Default)]
+pub(super) struct Splat<T> {
+    pub mx: T,
+    pub my: T,
+    pub half_a: T,
+    pub b: T,
+    pub half_c: T,
+    pub opacity: T,
+    pub depth: T,
+    /// The conic is positive definite, so the extents below bound every sample that can
+    /// pass the alpha test; otherwise every pixel of the tile is visited.
+    pub bounded: bool,
+    /// Padded half-extent in y (px).
+    pub ext_y: T,
+    /// 2·a·L and a·c − b², with L = ln(255·o) padded: the row at offset dy reaches
+    /// dx ∈ (−b·dy ± √(2aL − det·dy²)) / a.
+    pub two_a_l: T,
+    pub det: T,
+    pub inv_a: T,
+}
+
+impl<T: Real> Splat<T> {
+    pub(super) fn new(inputs: &RasterInputs<T>, g: usize) -> Self {
+        let [a, b, c] = [0, 1, 2].map(|k| inputs.conics[g * 3 + k]);
+        let half = T::c(0.5);
+        let opacity = inputs.opacities[g];
+        let det = a * c - b * b;
+        // Padding keeps the skip conservative against rounding in σ; extra pixels visited
+        // are rejected by the alpha test itself.
+        let l = (opacity / T::c(ALPHA_MIN)).ln();
+        let l_pad = l * T::c(1.001) + T::c(1e-3);
+        let bounded = a > T::zero() && det > T::zero() && l_pad.is_finite() && (a / det).is_finite();
+        Self {
+            mx: inputs.means2d[g * 2],
+            my: inputs.means2d[g * 2 + 1],
+            half_a: half * a,
+            b,
+            half_c: half * c,
+            opacity,
+            depth: inputs.depths[g],
+            bounded,
+            ext_y: (T::c(2.0) * l_pad * a / det).sqrt() + T::one(),
+            two_a_l: T::c(2.0) * a * l_pad,
+            det,
+            inv_a: T::one() / a,
+        }
+    }
+
+    /// Tile rows `[lo, hi)` (relative to `y0`) the Gaussian can reach.
+    #[inline(always)]
+    fn rows(&self, y0: usize) -> (usize, usize) {
+        if !self.bounded {
+            return (0, TILE);
+        }
+        let half = T::c(0.5);
+        let lo = (self.my - self.ext_y - half).ceil().to_f64().unwrap_or(0.0) - y0 as f64;
+        let hi = (self.my + self.ext_y - half).floor().to_f64().unwrap_or(-1.0) - y0 as f64 + 1.0;
+        (
+            lo.clamp(0.0, TILE as f64) as usize,
+            hi.clamp(0.0, TILE as f64) as usize,
+        )
+    }
+
+    /// Pixel columns `[lo, hi]` (absolute, as floats) the Gaussian can reach in the row
+    /// at vertical offset `dy`, or `None`.
+    #[inline(always)]
+    fn columns(&self, dy: T) -> Option<(T, T)> {
+        if !self.bounded {
+            return Some((T::neg_infinity(), T::infinity()));
+        }
+        let disc = self.two_a_l - self.det * dy * dy;
+        if !(disc >= T::zero()) {
+            return None;
+        }
+        let half_width = disc.sqrt() * self.inv_a;
+        // dx = mx − px and px = x + 0.5.
+        let centre = self.mx - T::c(0.5) + self.b * dy * self.inv_a;
+        Some((centre - half_width - T::one(), centre + half_width + T::one()))
+    }
+}
+
+/// The row-constant part of σ: dy = my − (y + 0.5), b·dy and ½c·dy².
+#[inline(always)]
+pub(super) fn row_terms<T: Real>(s: &Splat<T>, y: usize) -> (T, T, T) {
+    let dy = s.my - (T::c(y as f64) + T::c(0.5));
+    (dy, s.b * dy, s.half_c * dy * dy)
+}
+
+/// dx = mx − (x + 0.5) for the eight pixels starting at column `xc`.
+#[inline(always)]
+pub(super) fn chunk_dx<L: Lanes>(mx: L, xc: usize) -> L {
+    let px: [L::Elem; WIDTH] = std::array::from_fn(|i| L::Elem::c((xc + i) as f64 + 0.5));
+    mx.sub(L::from_array(px))
+}
+
+/// One Gaussian at eight pixels: (g = exp(−σ), α = min(0.99, o·g), σ ≥ 0 ∧ α ≥ 1/255).
+#[inline(always)]
+pub(super) fn sample<L: Lanes>(half_a: L, opacity: L, dx: L, b_dy: L, half_c_dy2: L) -> (L, L, L::Mask) {
+    let zero = L::splat(L::Elem::zero());
+    let sigma = dx.mul_add(half_a.mul_add(dx, b_dy), half_c_dy2);
+    let g = zero.sub(sigma).exp_nonpositive();
+    let alpha = L::splat(L::Elem::c(ALPHA_MAX)).min(opacity.mul(g));
+    let valid = L::and(sigma.ge(zero), alpha.ge(L::splat(L::Elem::c(ALPHA_MIN))));
+    (g, alpha, valid)
+}
+
+/// Compositing state of one tile.
+#[derive(Clone)]
+pub(super) struct TileState<L: Lanes> {
+    pub t: [L; SLOTS],
+    pub active: [L::Mask; SLOTS],
+    pub depth_limit: [L; SLOTS],
+    pub row_active: [u32; TILE],
+    pub num_active: u32,
+    pub x0: usize,
+    pub y0: usize,
+}
+
+impl<L: Lanes> TileState<L> {
+    pub(super) fn new<T: Real>(inputs: &RasterInputs<T>, tile_x: usize, tile_y: usize) -> Self
+    where
+        L: Lanes<Elem = T>,
+    {
+        let (x0, y0) = (tile_x * TILE, tile_y * TILE);
+        let mut active = [L::mask_from_bits(0); SLOTS];
+        let mut depth_limit = [L::splat(T::infinity()); SLOTS];
+        let mut row_active = [0u32; TILE];
+        for row in 0..TILE {
+            let y = y0 + row;
+            for ch in 0..CHUNKS_PER_ROW {
+                let xc = x0 + ch * WIDTH;
+                let mut bits = 0u8;
+                let mut lim = [T::infinity(); WIDTH];
+                for (i, l) in lim.iter_mut().enumerate() {
+                    let x = xc + i;
+                    if x < inputs.width && y < inputs.height {
+                        bits |= 1 << i;
+                        if let Some(d) = inputs.depth_map {
+                            *l = d[y * inputs.width + x] + inputs.depth_eps;
+                        }
+                    }
+                }
+                active[row * CHUNKS_PER_ROW + ch] = L::mask_from_bits(bits);
+                depth_limit[row * CHUNKS_PER_ROW + ch] = L::from_array(lim);
+                row_active[row] += bits.count_ones();
+            }
+        }
+        Self {
+            t: [L::splat(T::one()); SLOTS],
+            active,
+            depth_limit,
+            num_active: row_active.iter().sum(),
+            row_active,
+            x0,
+            y0,
+        }
+    }
+
+    /// Composites one Gaussian over the tile, front to back: updates T and the active
+    /// pixels, and calls `sink(slot, alpha, t_before, contributing)` for every visited
+    /// chunk with at least one contributing pixel.
+    #[inline(always)]
+    pub(super) fn visit_gaussian(&mut self, s: &Splat<L::Elem>, mut sink: impl FnMut(usize, L, L, L::Mask)) {
+        let one = L::splat(L::Elem::one());
+        let t_stop = L::splat(L::Elem::c(T_STOP));
+        let (half_a, opacity, mx) = (L::splat(s.half_a), L::splat(s.opacity), L::splat(s.mx));
+        let depth = L::splat(s.depth);
+        let (r0, r1) = s.rows(self.y0);
+        for row in r0..r1 {
+            if self.row_active[row] == 0 {
+                continue;
+            }
+            let y = self.y0 + row;
+            let (dy, b_dy, half_c_dy2) = row_terms(s, y);
+            let Some((col_lo, col_hi)) = s.columns(dy) else {
+                continue;
+            };
+            let (b_dy, half_c_dy2) = (L::splat(b_dy), L::splat(half_c_dy2));
+            for ch in 0..CHUNKS_PER_ROW {
+                let xc = self.x0 + ch * WIDTH;
+                let slot = row * CHUNKS_PER_ROW + ch;
+                let act = self.active[slot];
+                if !(L::Elem::c(xc as f64) <= col_hi && L::Elem::c((xc + WIDTH - 1) as f64) >= col_lo)
+                    || L::mask_bits(act) == 0
+                {
+                    continue;
+                }
+                let dx = chunk_dx(mx, xc);
+                let (_, alpha, valid) = sample(half_a, opacity, dx, b_dy, half_c_dy2);
+                let visible = depth.le(self.depth_limit[slot]);
+                let m = L::and(L::and(valid, visible), act);
+                if L::mask_bits(m) == 0 {
+                    continue;
+                }
+                let t = self.t[slot];
+                let next_t = t.mul(one.sub(alpha));
+                let stop = L::and_not(m, next_t.ge(t_stop));
+                let contrib = L::and_not(m, stop);
+                sink(slot, alpha, t, contrib);
+                self.t[slot] = L::select(contrib, next_t, t);
+                let stopped = L::mask_bits(stop);
+                if stopped != 0 {
+                    self.active[slot] = L::and_not(act, stop);
+                    self.row_active[row] -= stopped.count_ones();
+                    self.num_active -= stopped.count_ones();
+                }
+            }
+        }
+    }
+}
+
+/// Per-Gaussian pixel-loop constants for every Gaussian (culled ones are never visited).
+pub(super) fn splats<T: Real>(inputs: &RasterInputs<T>) -> Vec<Splat<T>> {
+    (0..inputs.num_gaussians)
+        .into_par_iter()
+        .with_min_len(1024)
+        .map(|g| Splat::new(inputs, g))
+        .collect()
+}
+
+/// Outputs of [`rasterize_forward`].
+#[derive(Debug, Clone)]
+pub struct RasterForward<T> {
+    /// `(H, W, C)` composited colour including T·background.
+    pub image: Vec<T>,
+    /// `(H, W)` transmittance after the last contributing sample.
+    pub transmittance: Vec<T>,
+    /// Tile lists, reused by [`super::rasterize_backward`].
+    pub binning: Binning,
+}
+
+/// Renders with the fastest lanes for `T` (AVX2 for f32 when built for x86-64-v3).
+pub fn rasterize_forward<T: SplatReal>(inputs: &RasterInputs<T>) -> Result<RasterForward<T>> {
+    rasterize_forward_with::<T::Fast>(inputs)
+}
+
+/// Renders with the lane implementation `L` (tests compare `Avx2` and `Emu<f32>`).
+pub fn rasterize_forward_with<L: Lanes>(inputs: &RasterInputs<L::Elem>) -> Result<RasterForward<L::Elem>>
+where
+    L::Elem: Real,
+{
+    inputs.validate()?;
+    let binning = Binning::new(inputs)?;
+    let splats = splats(inputs);
+    let (w, h, c) = (inputs.width, inputs.height, inputs.channels);
+    let mut image = vec![L::Elem::zero(); w * h * c];
+    let mut transmittance = vec![L::Elem::one(); w * h];
+    let zero_bg = vec![L::Elem::zero(); c];
+    let background = inputs.background.unwrap_or(&zero_bg);
+    image
+        .par_chunks_mut(TILE * w * c)
+        .zip(transmittance.par_chunks_mut(TILE * w))
+        .enumerate()
+        .for_each_init(
+            || vec![L::splat(L::Elem::zero()); c * SLOTS],
+            |acc, (tile_y, (image_rows, t_rows))| {
+                for tile_x in 0..binning.tiles_x {
+                    let tile = tile_y * binning.tiles_x + tile_x;
+                    let list = &binning.tile_gaussians
+                        [binning.tile_offsets[tile] as usize..binning.tile_offsets[tile + 1] as usize];
+                    let mut st = TileState::<L>::new(inputs, tile_x, tile_y);
+                    acc.fill(L::splat(L::Elem::zero()));
+                    for &g in list {
+                        if st.num_active == 0 {
+                            break;
+                        }
+                        let g = g as usize;
+                        let color = &inputs.colors[g * c..(g + 1) * c];
+                        st.visit_gaussian(&splats[g], |slot, alpha, t, contrib| {
+                            let wgt = L::select(contrib, alpha.mul(t), L::splat(L::Elem::zero()));
+                            for (ch, &col) in color.iter().enumerate() {
+                                let a = &mut acc[ch * SLOTS + slot];
+                                *a = wgt.mul_add(L::splat(col), *a);
+                            }
+                        });
+                    }
+                    write_tile(&st, acc, background, image_rows, t_rows, w, h, c);
+                }
+            },
+        );
+    Ok(RasterForward {
+        image,
+        transmittance,
+        binning,
+    })
+}
+
+/// Writes a finished tile's pixels: colour = accumulated + T·background.
+fn write_tile<L: Lanes>(
+    st: &TileState<L>,
+    acc: &[L],
+    background: &[L::Elem],
+    image_rows: &mut [L::Elem],
+    t_rows: &mut [L::Elem],
+    w: usize,
+    h: usize,
+    c: usize,
+) {
+    for row in 0..TILE {
+        let y = st.y0 + row;
+        if y >= h {
+            break;
+        }
+        for ch in 0..CHUNKS_PER_ROW {
+            let slot = row * CHUNKS_PER_ROW + ch;
+            let t = st.t[slot].to_array();
+            let xc = st.x0 + ch * WIDTH;
+            let lanes = WIDTH.min(w.saturating_sub(xc));
+            for i in 0..lanes {
+                t_rows[row * w + xc + i] = t[i];
+            }
+            for k in 0..c {
+                let col = acc[k * SLOTS + slot].to_array();
+                for i in 0..lanes {
+                    image_rows[(row * w + xc + i) * c + k] = col[i] + t[i] * background[k];
+                }
+            }
+        }
+    }
+}
