@@ -27,6 +27,8 @@ pub trait Lanes: Copy + Send + Sync {
     /// `self · b + c` with one rounding.
     fn mul_add(self, b: Self, c: Self) -> Self;
     fn min(self, o: Self) -> Self;
+    /// Correctly rounded square root (NaN for negative lanes).
+    fn sqrt(self) -> Self;
     /// `exp(self)` for `self ≤ 0`; inputs below −87 are treated as −87 (the result is far
     /// below every threshold that uses it).
     fn exp_nonpositive(self) -> Self;
@@ -135,6 +137,10 @@ impl<T: Real + KernelExp> Lanes for Emu<T> {
                 o.0[i]
             }
         }))
+    }
+    #[inline(always)]
+    fn sqrt(self) -> Self {
+        Self(self.0.map(T::sqrt))
     }
     #[inline(always)]
     fn exp_nonpositive(self) -> Self {
@@ -253,6 +259,11 @@ mod avx2 {
             unsafe { Self(_mm256_min_ps(self.0, o.0)) }
         }
         #[inline(always)]
+        fn sqrt(self) -> Self {
+            // SAFETY: compiled only when AVX2 and FMA are enabled for the target.
+            unsafe { Self(_mm256_sqrt_ps(self.0)) }
+        }
+        #[inline(always)]
         fn exp_nonpositive(self) -> Self {
             // SAFETY: compiled only when AVX2 and FMA are enabled for the target.
             unsafe {
@@ -365,6 +376,7 @@ mod tests {
             assert!(same(ea.exp_nonpositive(), va.exp_nonpositive()));
             assert!(same(ea.mul_add(eb, ea), va.mul_add(vb, va)));
             assert!(same(ea.min(eb), va.min(vb)));
+            assert!(same(ea.sqrt(), va.sqrt()));
             assert_eq!(Emu::<f32>::mask_bits(ea.ge(eb)), Avx2::mask_bits(va.ge(vb)));
             assert_eq!(ea.sum().to_bits(), va.sum().to_bits());
             let m = (rng.next_u64() & 0xff) as u8;

@@ -30,8 +30,6 @@ pub(super) struct Splat<T> {
     /// The conic is positive definite, so the extents below bound every sample that can
     /// pass the alpha test; otherwise every pixel of the tile is visited.
     pub bounded: bool,
-    /// Padded half-extent in y (px).
-    pub ext_y: T,
     /// 2·a·L and a·c − b², with L = ln(255·o) padded: the row at offset dy reaches
     /// dx ∈ (−b·dy ± √(2aL − det·dy²)) / a.
     pub two_a_l: T,
@@ -59,58 +57,79 @@ impl<T: Real> Splat<T> {
             opacity,
             depth: inputs.depths[g],
             bounded,
-            ext_y: (T::c(2.0) * l_pad * a / det).sqrt() + T::one(),
             two_a_l: T::c(2.0) * a * l_pad,
             det,
             inv_a: T::one() / a,
         }
     }
-
-    /// Tile rows `[lo, hi)` (relative to `y0`) the Gaussian can reach.
-    #[inline(always)]
-    fn rows(&self, y0: usize) -> (usize, usize) {
-        if !self.bounded {
-            return (0, TILE);
-        }
-        let half = T::c(0.5);
-        let lo = (self.my - self.ext_y - half).ceil().to_f64().unwrap_or(0.0) - y0 as f64;
-        let hi = (self.my + self.ext_y - half).floor().to_f64().unwrap_or(-1.0) - y0 as f64 + 1.0;
-        (
-            lo.clamp(0.0, TILE as f64) as usize,
-            hi.clamp(0.0, TILE as f64) as usize,
-        )
-    }
-
-    /// Pixel columns `[lo, hi]` (absolute, as floats) the Gaussian can reach in the row
-    /// at vertical offset `dy`, or `None`.
-    #[inline(always)]
-    fn columns(&self, dy: T) -> Option<(T, T)> {
-        if !self.bounded {
-            return Some((T::neg_infinity(), T::infinity()));
-        }
-        let disc = self.two_a_l - self.det * dy * dy;
-        if !(disc >= T::zero()) {
-            return None;
-        }
-        let half_width = disc.sqrt() * self.inv_a;
-        // dx = mx − px and px = x + 0.5.
-        let centre = self.mx - T::c(0.5) + self.b * dy * self.inv_a;
-        Some((centre - half_width - T::one(), centre + half_width + T::one()))
-    }
 }
 
-/// The row-constant part of σ: dy = my − (y + 0.5), b·dy and ½c·dy².
+/// The row-constant part of σ: dy = my − (y + 0.5), b·dy and ½c·dy², with the same
+/// operations as [`row_plan`] (so the same bits).
 #[inline(always)]
 pub(super) fn row_terms<T: Real>(s: &Splat<T>, y: usize) -> (T, T, T) {
-    let dy = s.my - (T::c(y as f64) + T::c(0.5));
+    let dy = s.my - T::c(y as f64 + 0.5);
     (dy, s.b * dy, s.half_c * dy * dy)
 }
 
-/// dx = mx − (x + 0.5) for the eight pixels starting at column `xc`.
+/// (0, 1, …, 7): lane offsets of pixel coordinates.
+#[inline(always)]
+fn iota<L: Lanes>() -> L {
+    L::from_array(std::array::from_fn(|i| L::Elem::c(i as f64)))
+}
+
+/// dx = mx − (x + 0.5) for the eight pixels starting at column `xc` (the pixel centres
+/// are exact in floating point, so this is one rounding, as in the scalar formula).
 #[inline(always)]
 pub(super) fn chunk_dx<L: Lanes>(mx: L, xc: usize) -> L {
-    let px: [L::Elem; WIDTH] = std::array::from_fn(|i| L::Elem::c((xc + i) as f64 + 0.5));
-    mx.sub(L::from_array(px))
+    mx.sub(L::splat(L::Elem::c(xc as f64 + 0.5)).add(iota()))
+}
+
+/// Which 8-pixel chunks of each tile row a Gaussian can reach (bit r of `chunks[c]` for
+/// row r, chunk c), and the row terms of σ, for all 16 rows at once. The row at offset
+/// dy reaches dx ∈ (−b·dy ± √(2aL − det·dy²)) / a; a negative discriminant (outside the
+/// ellipse's y-extent) yields NaN, which fails both comparisons.
+pub(super) struct RowPlan<T> {
+    pub chunks: [u16; CHUNKS_PER_ROW],
+    pub b_dy: [T; TILE],
+    pub half_c_dy2: [T; TILE],
+}
+
+#[inline(always)]
+pub(super) fn row_plan<L: Lanes>(s: &Splat<L::Elem>, x0: usize, y0: usize) -> RowPlan<L::Elem> {
+    type E<L> = <L as Lanes>::Elem;
+    let mut plan = RowPlan {
+        chunks: [0; CHUNKS_PER_ROW],
+        b_dy: [E::<L>::zero(); TILE],
+        half_c_dy2: [E::<L>::zero(); TILE],
+    };
+    let (b, half_c) = (L::splat(s.b), L::splat(s.half_c));
+    for part in 0..TILE / WIDTH {
+        let r0 = part * WIDTH;
+        let dy = L::splat(s.my).sub(L::splat(E::<L>::c((y0 + r0) as f64 + 0.5)).add(iota()));
+        let b_dy = b.mul(dy);
+        plan.b_dy[r0..r0 + WIDTH].copy_from_slice(&b_dy.to_array());
+        plan.half_c_dy2[r0..r0 + WIDTH].copy_from_slice(&half_c.mul(dy).mul(dy).to_array());
+        for (ch, bits) in plan.chunks.iter_mut().enumerate() {
+            let reach = if s.bounded {
+                let disc = L::splat(s.two_a_l).sub(L::splat(s.det).mul(dy).mul(dy));
+                let inv_a = L::splat(s.inv_a);
+                let half_width = disc.sqrt().mul(inv_a);
+                let centre = L::splat(s.mx - E::<L>::c(0.5)).add(b_dy.mul(inv_a));
+                let one = L::splat(E::<L>::one());
+                let lo = centre.sub(half_width).sub(one);
+                let hi = centre.add(half_width).add(one);
+                let xc = x0 + ch * WIDTH;
+                let first = L::splat(E::<L>::c(xc as f64));
+                let last = L::splat(E::<L>::c((xc + WIDTH - 1) as f64));
+                L::mask_bits(L::and(first.le(hi), last.ge(lo)))
+            } else {
+                0xff
+            };
+            *bits |= (reach as u16) << r0;
+        }
+    }
+    plan
 }
 
 /// One Gaussian at eight pixels: (g = exp(−σ), α = min(0.99, o·g), σ ≥ 0 ∧ α ≥ 1/255).
@@ -177,42 +196,37 @@ impl<L: Lanes> TileState<L> {
     }
 
     /// Composites one Gaussian over the tile, front to back: updates T and the active
-    /// pixels, and calls `sink(slot, alpha, t_before, contributing)` for every visited
+    /// pixels, and calls `sink(slot, alpha, g, t_before, contributing)` for every visited
     /// chunk with at least one contributing pixel. Returns the number of chunks sampled.
     #[inline(always)]
     pub(super) fn visit_gaussian(
         &mut self,
         s: &Splat<L::Elem>,
-        mut sink: impl FnMut(usize, L, L, L::Mask),
+        mut sink: impl FnMut(usize, L, L, L, L::Mask),
     ) -> u32 {
         let mut sampled = 0;
         let one = L::splat(L::Elem::one());
         let t_stop = L::splat(L::Elem::c(T_STOP));
         let (half_a, opacity, mx) = (L::splat(s.half_a), L::splat(s.opacity), L::splat(s.mx));
         let depth = L::splat(s.depth);
-        let (r0, r1) = s.rows(self.y0);
-        for row in r0..r1 {
+        let plan = row_plan::<L>(s, self.x0, self.y0);
+        let mut rows = plan.chunks.iter().fold(0u16, |a, b| a | b);
+        while rows != 0 {
+            let row = rows.trailing_zeros() as usize;
+            rows &= rows - 1;
             if self.row_active[row] == 0 {
                 continue;
             }
-            let y = self.y0 + row;
-            let (dy, b_dy, half_c_dy2) = row_terms(s, y);
-            let Some((col_lo, col_hi)) = s.columns(dy) else {
-                continue;
-            };
-            let (b_dy, half_c_dy2) = (L::splat(b_dy), L::splat(half_c_dy2));
+            let (b_dy, half_c_dy2) = (L::splat(plan.b_dy[row]), L::splat(plan.half_c_dy2[row]));
             for ch in 0..CHUNKS_PER_ROW {
-                let xc = self.x0 + ch * WIDTH;
                 let slot = row * CHUNKS_PER_ROW + ch;
                 let act = self.active[slot];
-                if !(L::Elem::c(xc as f64) <= col_hi && L::Elem::c((xc + WIDTH - 1) as f64) >= col_lo)
-                    || L::mask_bits(act) == 0
-                {
+                if plan.chunks[ch] >> row & 1 == 0 || L::mask_bits(act) == 0 {
                     continue;
                 }
-                let dx = chunk_dx(mx, xc);
+                let dx = chunk_dx(mx, self.x0 + ch * WIDTH);
                 sampled += 1;
-                let (_, alpha, valid) = sample(half_a, opacity, dx, b_dy, half_c_dy2);
+                let (g, alpha, valid) = sample(half_a, opacity, dx, b_dy, half_c_dy2);
                 let visible = depth.le(self.depth_limit[slot]);
                 let m = L::and(L::and(valid, visible), act);
                 if L::mask_bits(m) == 0 {
@@ -222,7 +236,7 @@ impl<L: Lanes> TileState<L> {
                 let next_t = t.mul(one.sub(alpha));
                 let stop = L::and_not(m, next_t.ge(t_stop));
                 let contrib = L::and_not(m, stop);
-                sink(slot, alpha, t, contrib);
+                sink(slot, alpha, g, t, contrib);
                 self.t[slot] = L::select(contrib, next_t, t);
                 let stopped = L::mask_bits(stop);
                 if stopped != 0 {
@@ -296,7 +310,7 @@ where
                         }
                         let g = g as usize;
                         let color = &inputs.colors[g * c..(g + 1) * c];
-                        sampled += st.visit_gaussian(&splats[g], |slot, alpha, t, contrib| {
+                        sampled += st.visit_gaussian(&splats[g], |slot, alpha, _g, t, contrib| {
                             let wgt = L::select(contrib, alpha.mul(t), L::splat(L::Elem::zero()));
                             for (ch, &col) in color.iter().enumerate() {
                                 let a = &mut acc[ch * SLOTS + slot];

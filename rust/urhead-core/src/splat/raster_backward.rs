@@ -13,7 +13,7 @@ use rayon::prelude::*;
 
 use super::binning::Binning;
 use super::lanes::{Lanes, WIDTH};
-use super::raster::{chunk_dx, row_terms, sample, splats, Splat, TileState, SLOTS};
+use super::raster::{chunk_dx, row_terms, splats, Splat, TileState, SLOTS};
 use super::{RasterInputs, SplatReal, ALPHA_MAX, TILE};
 use crate::error::{check_len, Error, Result};
 use crate::Real;
@@ -41,6 +41,8 @@ pub struct RasterGrads<T> {
 /// Per-thread scratch of the tile backward.
 struct Scratch<L: Lanes> {
     rec_t: Vec<L>,
+    rec_alpha: Vec<L>,
+    rec_g: Vec<L>,
     rec_meta: Vec<(u8, u8)>,
     /// Records end of each Gaussian of the current segment.
     ends: Vec<u32>,
@@ -98,6 +100,8 @@ pub fn rasterize_backward_with<L: Lanes>(
     row_records.into_par_iter().enumerate().for_each_init(
         || Scratch::<L> {
             rec_t: Vec::new(),
+            rec_alpha: Vec::new(),
+            rec_g: Vec::new(),
             rec_meta: Vec::new(),
             ends: Vec::new(),
             snapshots: Vec::new(),
@@ -172,11 +176,18 @@ pub fn rasterize_backward_with<L: Lanes>(
 /// chunk it contributes to.
 #[inline(always)]
 fn record_gaussian<L: Lanes>(st: &mut TileState<L>, s: &Splat<L::Elem>, scratch: &mut Scratch<L>) {
-    let (rec_t, rec_meta) = (&mut scratch.rec_t, &mut scratch.rec_meta);
-    st.visit_gaussian(s, |slot, _alpha, t, contrib| {
+    let (rec_t, rec_alpha, rec_g, rec_meta) = (
+        &mut scratch.rec_t,
+        &mut scratch.rec_alpha,
+        &mut scratch.rec_g,
+        &mut scratch.rec_meta,
+    );
+    st.visit_gaussian(s, |slot, alpha, g, t, contrib| {
         let bits = L::mask_bits(contrib);
         if bits != 0 {
             rec_t.push(t);
+            rec_alpha.push(alpha);
+            rec_g.push(g);
             rec_meta.push((slot as u8, bits));
         }
     });
@@ -185,6 +196,8 @@ fn record_gaussian<L: Lanes>(st: &mut TileState<L>, s: &Splat<L::Elem>, scratch:
 
 fn clear_records<L: Lanes>(scratch: &mut Scratch<L>) {
     scratch.rec_t.clear();
+    scratch.rec_alpha.clear();
+    scratch.rec_g.clear();
     scratch.rec_meta.clear();
     scratch.ends.clear();
 }
@@ -273,7 +286,7 @@ fn backward_tile<L: Lanes>(
             let g = list[k] as usize;
             let s = &splats[g];
             let color = &inputs.colors[g * c..(g + 1) * c];
-            let (half_a, opacity, mx) = (L::splat(s.half_a), L::splat(s.opacity), L::splat(s.mx));
+            let (opacity, mx) = (L::splat(s.opacity), L::splat(s.mx));
             let [mut acc_s1, mut acc_s2, mut acc_dy_s1, mut acc_dy_s0, mut acc_dy2_s0, mut acc_o] = [zero; 6];
             scratch.acc_color.fill(zero);
             for r in (r0..r1).rev() {
@@ -281,9 +294,9 @@ fn backward_tile<L: Lanes>(
                 let (slot, bits) = scratch.rec_meta[r];
                 let slot = slot as usize;
                 let (row, ch) = (slot / CHUNKS_PER_ROW, slot % CHUNKS_PER_ROW);
-                let (dy, b_dy, half_c_dy2) = row_terms(s, y0 + row);
+                let (dy, _, _) = row_terms(s, y0 + row);
                 let dx = chunk_dx(mx, x0 + ch * WIDTH);
-                let (g_val, alpha, _) = sample(half_a, opacity, dx, L::splat(b_dy), L::splat(half_c_dy2));
+                let (alpha, g_val) = (scratch.rec_alpha[r], scratch.rec_g[r]);
                 let m = L::mask_from_bits(bits);
                 let mut vc_dot = zero;
                 for (k, &col) in color.iter().enumerate() {
