@@ -110,22 +110,24 @@ pub(super) fn row_plan<L: Lanes>(s: &Splat<L::Elem>, x0: usize, y0: usize) -> Ro
         let b_dy = b.mul(dy);
         plan.b_dy[r0..r0 + WIDTH].copy_from_slice(&b_dy.to_array());
         plan.half_c_dy2[r0..r0 + WIDTH].copy_from_slice(&half_c.mul(dy).mul(dy).to_array());
+        if !s.bounded {
+            for bits in &mut plan.chunks {
+                *bits |= 0xff << r0;
+            }
+            continue;
+        }
+        let disc = L::splat(s.two_a_l).sub(L::splat(s.det).mul(dy).mul(dy));
+        let inv_a = L::splat(s.inv_a);
+        let half_width = disc.sqrt().mul(inv_a);
+        let centre = L::splat(s.mx - E::<L>::c(0.5)).add(b_dy.mul(inv_a));
+        let one = L::splat(E::<L>::one());
+        let lo = centre.sub(half_width).sub(one);
+        let hi = centre.add(half_width).add(one);
         for (ch, bits) in plan.chunks.iter_mut().enumerate() {
-            let reach = if s.bounded {
-                let disc = L::splat(s.two_a_l).sub(L::splat(s.det).mul(dy).mul(dy));
-                let inv_a = L::splat(s.inv_a);
-                let half_width = disc.sqrt().mul(inv_a);
-                let centre = L::splat(s.mx - E::<L>::c(0.5)).add(b_dy.mul(inv_a));
-                let one = L::splat(E::<L>::one());
-                let lo = centre.sub(half_width).sub(one);
-                let hi = centre.add(half_width).add(one);
-                let xc = x0 + ch * WIDTH;
-                let first = L::splat(E::<L>::c(xc as f64));
-                let last = L::splat(E::<L>::c((xc + WIDTH - 1) as f64));
-                L::mask_bits(L::and(first.le(hi), last.ge(lo)))
-            } else {
-                0xff
-            };
+            let xc = x0 + ch * WIDTH;
+            let first = L::splat(E::<L>::c(xc as f64));
+            let last = L::splat(E::<L>::c((xc + WIDTH - 1) as f64));
+            let reach = L::mask_bits(L::and(first.le(hi), last.ge(lo)));
             *bits |= (reach as u16) << r0;
         }
     }
