@@ -16,6 +16,8 @@ use num_traits::{One, Zero};
 /// Eight-lane slots per tile: 16 rows × 2 chunks.
 pub(super) const SLOTS: usize = TILE * TILE / WIDTH;
 const CHUNKS_PER_ROW: usize = TILE / WIDTH;
+/// Pixels added on each side of a row's analytic x-extent.
+const X_SLACK: f64 = 0.05;
 
 /// Per-Gaussian constants of the pixel loop, derived from the rasterizer's inputs.
 #[derive(Debug, Clone, Copy, Default)]
@@ -46,7 +48,7 @@ impl<T: Real> Splat<T> {
         // Padding keeps the skip conservative against rounding in σ; extra pixels visited
         // are rejected by the alpha test itself.
         let l = (opacity / T::c(ALPHA_MIN)).ln();
-        let l_pad = l * T::c(1.001) + T::c(1e-3);
+        let l_pad = l * T::c(1.0 + 1e-4) + T::c(1e-4);
         let bounded = a > T::zero() && det > T::zero() && l_pad.is_finite() && (a / det).is_finite();
         Self {
             mx: inputs.means2d[g * 2],
@@ -120,9 +122,11 @@ pub(super) fn row_plan<L: Lanes>(s: &Splat<L::Elem>, x0: usize, y0: usize) -> Ro
         let inv_a = L::splat(s.inv_a);
         let half_width = disc.sqrt().mul(inv_a);
         let centre = L::splat(s.mx - E::<L>::c(0.5)).add(b_dy.mul(inv_a));
-        let one = L::splat(E::<L>::one());
-        let lo = centre.sub(half_width).sub(one);
-        let hi = centre.add(half_width).add(one);
+        // Slack for rounding in σ and in the bound itself (≈1e-4 px for pixel-sized
+        // Gaussians, growing with the extent): far below a pixel.
+        let padded = half_width.mul_add(L::splat(E::<L>::c(1.0 + 1e-3)), L::splat(E::<L>::c(X_SLACK)));
+        let lo = centre.sub(padded);
+        let hi = centre.add(padded);
         for (ch, bits) in plan.chunks.iter_mut().enumerate() {
             let xc = x0 + ch * WIDTH;
             let first = L::splat(E::<L>::c(xc as f64));
