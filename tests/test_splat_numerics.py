@@ -255,6 +255,16 @@ def test_case16_three_thousand_faint_gaussians():
     assert (out.image.double() - img).abs().max() < 1e-5
     k = int(math.log(1e-4) / math.log(1 - alpha))  # samples before the stop
     assert t[int(CENTRE), int(CENTRE)].item() == pytest.approx((1 - alpha) ** k, rel=1e-9)
+    # Gradients through a tile list of thousands (the backward replays it in segments).
+    grads = []
+    for fn in (rasterize_gaussians, ref.rasterize_gaussians):
+        o, c = requires_grad(opac, colors)
+        out = fn(means, quats, scales, o, c, cam)
+        weighted_loss(out[0], out[1]).backward()
+        grads.append((o.grad, c.grad))
+    for a, b in zip(*grads, strict=True):
+        assert torch.isfinite(a).all()
+        assert (a - b).abs().max() <= 1e-9 * b.abs().max()
 
 
 # 17 --------------------------------------------------------------------------------------

@@ -110,13 +110,13 @@ class _Rasterize(torch.autograd.Function):
             width,
             height,
         ]
-        image, transmittance, binning, pairs = kernel("splat_rasterize_forward", dtype)(
+        image, transmittance, state, pairs = kernel("splat_rasterize_forward", dtype)(
             *args, num_threads()
         )
         ctx.set_materialize_grads(False)
         ctx.save_for_backward(means2d, conics, colors, opacities, depths, radii, background)
         ctx.depth_map = depth_map
-        ctx.binning = binning
+        ctx.state = state
         ctx.eps = eps
         ctx.size = size
         ctx.evaluated_pairs = pairs
@@ -133,7 +133,7 @@ class _Rasterize(torch.autograd.Function):
             return (None,) * 10
         width, height = ctx.size
         grads = kernel("splat_rasterize_backward", dtype)(
-            ctx.binning,
+            ctx.state,
             means2d.detach().numpy(),
             conics.detach().numpy(),
             colors.detach().numpy(),

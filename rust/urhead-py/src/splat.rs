@@ -1,6 +1,6 @@
 //! Binding of `urhead_core::splat`: projection and rasterization, float32 and float64 entry
-//! points sharing one generic body each. The rasterizer's tile lists cross back to Python
-//! as an opaque `SplatBinning` object that the backward takes.
+//! points sharing one generic body each. What the rasterizer's backward needs from its
+//! forward crosses back to Python as an opaque `SplatState` object.
 
 use numpy::{Element, PyReadonlyArrayDyn};
 use pyo3::prelude::*;
@@ -17,16 +17,18 @@ use crate::pool::with_threads;
 
 type Arr<'py, T> = PyReadonlyArrayDyn<'py, T>;
 
-/// Tile lists of one forward rasterization, kept for its backward.
+/// What one forward rasterization keeps for its backward: the tile lists.
 #[pyclass(frozen, module = "urhead._core")]
-pub struct SplatBinning(Binning);
+pub struct SplatState {
+    binning: Binning,
+}
 
 #[pymethods]
-impl SplatBinning {
+impl SplatState {
     /// Number of (tile, Gaussian) intersections.
     #[getter]
     fn num_intersections(&self) -> usize {
-        self.0.num_intersections()
+        self.binning.num_intersections()
     }
 }
 
@@ -211,7 +213,7 @@ macro_rules! splat_entry_points {
             )
         }
 
-        /// Rasterization → (image, transmittance, binning, evaluated pixel pairs).
+        /// Rasterization → (image, transmittance, state for the backward, evaluated pairs).
         #[pyfunction]
         #[pyo3(signature = (means2d, conics, colors, opacities, depths, radii, background, depth_map, depth_eps, width, height, num_threads))]
         pub fn $rf<'py>(
@@ -234,13 +236,14 @@ macro_rules! splat_entry_points {
             let out = py
                 .allow_threads(|| with_threads(num_threads, || rasterize_forward(&inputs)))
                 .map_err(py_err)?;
+            let state = SplatState { binning: out.binning };
             let c = inputs.channels;
             PyTuple::new(
                 py,
                 [
                     array(py, out.image, &[height, width, c])?.into_any().unbind(),
                     array(py, out.transmittance, &[height, width])?.into_any().unbind(),
-                    Py::new(py, SplatBinning(out.binning))?.into_any(),
+                    Py::new(py, state)?.into_any(),
                     out.evaluated_pairs.into_pyobject(py)?.into_any().unbind(),
                 ],
             )
@@ -248,10 +251,10 @@ macro_rules! splat_entry_points {
 
         /// Rasterization backward → (v_means2d, v_conics, v_colors, v_opacities).
         #[pyfunction]
-        #[pyo3(signature = (binning, means2d, conics, colors, opacities, depths, radii, background, depth_map, depth_eps, width, height, v_image, v_transmittance, num_threads))]
+        #[pyo3(signature = (state, means2d, conics, colors, opacities, depths, radii, background, depth_map, depth_eps, width, height, v_image, v_transmittance, num_threads))]
         pub fn $rb<'py>(
             py: Python<'py>,
-            binning: PyRef<'py, SplatBinning>,
+            state: PyRef<'py, SplatState>,
             means2d: Arr<'py, $t>,
             conics: Arr<'py, $t>,
             colors: Arr<'py, $t>,
@@ -271,7 +274,7 @@ macro_rules! splat_entry_points {
             let inputs = raster_inputs(&arrays, background.as_ref(), depth_map.as_ref(), depth_eps, width, height)?;
             let v_image = v_image.as_ref().map(|a| data(a, "v_image")).transpose()?;
             let v_t = v_transmittance.as_ref().map(|a| data(a, "v_transmittance")).transpose()?;
-            let bins = &binning.0;
+            let bins = &state.binning;
             let g = py
                 .allow_threads(|| with_threads(num_threads, || rasterize_backward(&inputs, bins, v_image, v_t)))
                 .map_err(py_err)?;

@@ -29,6 +29,7 @@ pub mod lanes;
 mod project;
 mod raster;
 mod raster_backward;
+mod records;
 pub mod sh;
 pub mod synthetic;
 
