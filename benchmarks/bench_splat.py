@@ -10,12 +10,19 @@ measured in the same run. The torch rasterizer runs on at most ``--torch-max`` G
 (a random subset of the scene); its time is scaled to the full scene per evaluated pair,
 which the output says.
 
+Threads: the kernels run on ``--threads`` (``URHEAD_NUM_THREADS``). Torch runs on one
+thread throughout: its OpenMP workers spin-wait after each op and then compete with the
+kernel pool for the same cores (on the 2-core machine that alone doubled the measured
+forward+backward), and the plain-torch rasterizer's many small per-tile ops were slower
+on two OpenMP threads than on one.
+
     python benchmarks/bench_splat.py [--sizes 10000 30000 100000] [--threads 2]
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import time
 
@@ -194,10 +201,14 @@ def main():
     parser.add_argument("--sizes", type=int, nargs="+", default=[10_000, 30_000, 100_000])
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--reps", type=int, default=15)
-    parser.add_argument("--torch-max", type=int, default=10_000)
+    parser.add_argument("--torch-max", type=int, default=3_000)
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
-    print(f"512² image, SH degree 3, {args.threads} threads; medians of {args.reps} runs")
+    os.environ["URHEAD_NUM_THREADS"] = str(args.threads)
+    torch.set_num_threads(1)
+    print(
+        f"512² image, SH degree 3, {args.threads} kernel threads, 1 torch thread; "
+        f"medians of {args.reps} runs"
+    )
     for n in args.sizes:
         r = bench(n, args.reps, args.torch_max)
         note = ""
