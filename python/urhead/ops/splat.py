@@ -110,7 +110,7 @@ class _Rasterize(torch.autograd.Function):
             width,
             height,
         ]
-        image, transmittance, state, pairs = kernel("splat_rasterize_forward", dtype)(
+        image, transmittance, state, _pairs = kernel("splat_rasterize_forward", dtype)(
             *args, num_threads()
         )
         ctx.set_materialize_grads(False)
@@ -119,7 +119,6 @@ class _Rasterize(torch.autograd.Function):
         ctx.state = state
         ctx.eps = eps
         ctx.size = size
-        ctx.evaluated_pairs = pairs
         t = torch.from_numpy(transmittance)
         ctx.transmittance = t
         return torch.from_numpy(image), t

@@ -1,7 +1,7 @@
 //! Tile compositing, forward. The per-tile state (transmittance, activity, depth limit of
 //! 256 pixels) lives in 32 eight-lane slots; each Gaussian visits only the rows of the tile
 //! its cut-off ellipse reaches and, per row, only the 8-pixel chunks its x-extent reaches.
-//! [`visit_gaussian`] and [`sample`] are the single source of every compositing decision:
+//! [`TileState::visit_gaussian`] and [`sample`] are the single source of every compositing decision:
 //! the backward replays them.
 
 use rayon::prelude::*;
