@@ -81,7 +81,7 @@ pub(super) struct ProjectedOne<T> {
     pub radius: [i32; 2],
 }
 
-#[inline]
+#[inline(always)]
 pub(super) fn quat_to_rotmat<T: Real>(q: [T; 4]) -> M3<T> {
     let [w, x, y, z] = q;
     let (one, two) = (T::one(), T::c(2.0));
@@ -154,7 +154,7 @@ fn to_radius<T: Real>(x: T) -> i32 {
 /// zero quaternion, zero/subnormal scale, opacity < 1/255, non-positive or non-finite
 /// 2D determinant, zero radius, or entirely off-screen). Predicates are written so that
 /// NaN culls.
-#[inline]
+#[inline(always)]
 pub(super) fn project_one<T: Real>(
     cam: &CameraT<T>,
     mean: V3<T>,
