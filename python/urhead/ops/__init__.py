@@ -6,17 +6,21 @@ from urhead.ops.antialias import antialias, antialias_topology
 from urhead.ops.interpolate import interpolate
 from urhead.ops.lbs import LbsOutput, lbs
 from urhead.ops.rasterize import RasterOutput, UvRasterOutput, rasterize, rasterize_uv
+from urhead.ops.splat import SplatOutput, normal_to_quat, rasterize_gaussians
 from urhead.ops.texture import texture
 
 __all__ = [
     "LbsOutput",
     "RasterOutput",
+    "SplatOutput",
     "UvRasterOutput",
     "antialias",
     "antialias_topology",
     "interpolate",
     "lbs",
+    "normal_to_quat",
     "rasterize",
+    "rasterize_gaussians",
     "rasterize_uv",
     "texture",
 ]

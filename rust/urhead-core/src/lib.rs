@@ -14,6 +14,7 @@ pub mod memory;
 pub mod parallel;
 pub mod raster;
 pub mod real;
+pub mod splat;
 pub mod testing;
 
 pub use camera::Camera;

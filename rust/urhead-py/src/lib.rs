@@ -9,6 +9,7 @@ mod errors;
 mod lbs;
 mod pool;
 mod raster;
+mod splat;
 
 use pyo3::prelude::*;
 
@@ -30,5 +31,14 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(lbs::lbs_forward_f64, m)?)?;
     m.add_function(wrap_pyfunction!(lbs::lbs_backward_f64, m)?)?;
     raster::register(m)?;
+    m.add_class::<splat::SplatState>()?;
+    m.add_function(wrap_pyfunction!(splat::splat_project_forward_f32, m)?)?;
+    m.add_function(wrap_pyfunction!(splat::splat_project_backward_f32, m)?)?;
+    m.add_function(wrap_pyfunction!(splat::splat_rasterize_forward_f32, m)?)?;
+    m.add_function(wrap_pyfunction!(splat::splat_rasterize_backward_f32, m)?)?;
+    m.add_function(wrap_pyfunction!(splat::splat_project_forward_f64, m)?)?;
+    m.add_function(wrap_pyfunction!(splat::splat_project_backward_f64, m)?)?;
+    m.add_function(wrap_pyfunction!(splat::splat_rasterize_forward_f64, m)?)?;
+    m.add_function(wrap_pyfunction!(splat::splat_rasterize_backward_f64, m)?)?;
     Ok(())
 }

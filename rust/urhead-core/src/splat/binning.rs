@@ -1,0 +1,173 @@
+//! Tile binning: every visible Gaussian is listed in each 16×16 tile its bounding box
+//! touches, each tile's list in (depth, index) order — the order a stable sort of
+//! (tile, depth) keys with index tie-breaks gives. Built by one global depth sort
+//! followed by a counting sort by tile, which also yields the inverse index (each
+//! Gaussian's intersections in row-major tile order) that the backward reduces over.
+
+use rayon::prelude::*;
+
+use super::{RasterInputs, MAX_INTERSECTIONS, TILE};
+use crate::error::{Error, Result};
+use crate::Real;
+
+/// Tile lists and their inverse. Built by [`Binning::new`], reused by the backward.
+#[derive(Debug, Clone)]
+pub struct Binning {
+    pub tiles_x: usize,
+    pub tiles_y: usize,
+    /// `(tiles + 1)`: tile t lists `tile_gaussians[tile_offsets[t]..tile_offsets[t+1]]`.
+    pub tile_offsets: Vec<u32>,
+    /// `(I,)` Gaussian ids, front to back within each tile.
+    pub tile_gaussians: Vec<u32>,
+    /// `(N + 1)`: Gaussian g's intersections are
+    /// `isect_of_gaussian[gaussian_offsets[g]..gaussian_offsets[g+1]]`.
+    pub gaussian_offsets: Vec<u32>,
+    /// `(I,)` positions in `tile_gaussians`, row-major tile order per Gaussian.
+    pub isect_of_gaussian: Vec<u32>,
+    /// Image size the binning was made for.
+    pub width: usize,
+    pub height: usize,
+}
+
+/// Half-open tile rectangle `[x0, x1) × [y0, y1)` a Gaussian touches; empty if culled.
+#[inline]
+pub(super) fn tile_rect<T: Real>(
+    inputs: &RasterInputs<T>,
+    g: usize,
+    tiles_x: usize,
+    tiles_y: usize,
+) -> [usize; 4] {
+    let (rx, ry) = (inputs.radii[g * 2], inputs.radii[g * 2 + 1]);
+    if rx <= 0 || ry <= 0 || !(inputs.opacities[g] >= T::c(super::ALPHA_MIN)) {
+        return [0; 4];
+    }
+    let mx = inputs.means2d[g * 2].to_f64().unwrap_or(f64::NAN);
+    let my = inputs.means2d[g * 2 + 1].to_f64().unwrap_or(f64::NAN);
+    let t = TILE as f64;
+    let span = |lo: f64, hi: f64, n: usize| -> (usize, usize) {
+        let a = (lo / t).floor().clamp(0.0, n as f64);
+        let b = (hi / t).ceil().clamp(0.0, n as f64);
+        (a as usize, b as usize)
+    };
+    let (x0, x1) = span(mx - rx as f64, mx + rx as f64, tiles_x);
+    let (y0, y1) = span(my - ry as f64, my + ry as f64, tiles_y);
+    if x0 >= x1 || y0 >= y1 {
+        return [0; 4];
+    }
+    [x0, x1, y0, y1]
+}
+
+impl Binning {
+    pub fn new<T: Real>(inputs: &RasterInputs<T>) -> Result<Self> {
+        let n = inputs.num_gaussians;
+        let tiles_x = inputs.width.div_ceil(TILE);
+        let tiles_y = inputs.height.div_ceil(TILE);
+        let num_tiles = tiles_x * tiles_y;
+        let rects: Vec<[usize; 4]> = (0..n)
+            .into_par_iter()
+            .map(|g| tile_rect(inputs, g, tiles_x, tiles_y))
+            .collect();
+        let count = |r: &[usize; 4]| (r[1] - r[0]) * (r[3] - r[2]);
+        let total: u128 = rects.iter().map(|r| count(r) as u128).sum();
+        if total > MAX_INTERSECTIONS as u128 {
+            return Err(Error::TooLarge {
+                what: "tile intersections (Gaussians × tiles covered; shrink huge Gaussians)",
+                requested: total,
+                limit: MAX_INTERSECTIONS as u128,
+            });
+        }
+        let total = total as usize;
+
+        let mut gaussian_offsets = Vec::with_capacity(n + 1);
+        gaussian_offsets.push(0u32);
+        for r in &rects {
+            gaussian_offsets.push(gaussian_offsets.last().unwrap() + count(r) as u32);
+        }
+
+        let order = depth_order(inputs, &rects);
+        let mut tile_counts = vec![0u32; num_tiles];
+        for &g in &order {
+            let [x0, x1, y0, y1] = rects[g as usize];
+            for ty in y0..y1 {
+                for c in &mut tile_counts[ty * tiles_x + x0..ty * tiles_x + x1] {
+                    *c += 1;
+                }
+            }
+        }
+        let mut tile_offsets = Vec::with_capacity(num_tiles + 1);
+        tile_offsets.push(0u32);
+        for c in &tile_counts {
+            tile_offsets.push(tile_offsets.last().unwrap() + c);
+        }
+        let mut cursor: Vec<u32> = tile_offsets[..num_tiles].to_vec();
+        let mut tile_gaussians = vec![0u32; total];
+        let mut isect_of_gaussian = vec![0u32; total];
+        for &g in &order {
+            let [x0, x1, y0, y1] = rects[g as usize];
+            let mut slot = gaussian_offsets[g as usize] as usize;
+            for ty in y0..y1 {
+                for tx in x0..x1 {
+                    let pos = cursor[ty * tiles_x + tx];
+                    cursor[ty * tiles_x + tx] += 1;
+                    tile_gaussians[pos as usize] = g;
+                    isect_of_gaussian[slot] = pos;
+                    slot += 1;
+                }
+            }
+        }
+        Ok(Self {
+            tiles_x,
+            tiles_y,
+            tile_offsets,
+            tile_gaussians,
+            gaussian_offsets,
+            isect_of_gaussian,
+            width: inputs.width,
+            height: inputs.height,
+        })
+    }
+
+    pub fn num_intersections(&self) -> usize {
+        self.tile_gaussians.len()
+    }
+}
+
+/// Front-to-back order of the visible Gaussians; the index breaks depth ties. When every
+/// depth is exactly a float32 (always for float32 inputs) the (depth, index) key packs
+/// into one u64, which sorts faster than a tuple.
+fn depth_order<T: Real>(inputs: &RasterInputs<T>, rects: &[[usize; 4]]) -> Vec<u32> {
+    let visible = |g: &usize| rects[*g][1] > rects[*g][0] && rects[*g][3] > rects[*g][2];
+    let n = inputs.num_gaussians;
+    let as_f32 = |d: T| d.to_f32().filter(|&f| T::c(f as f64) == d);
+    if (0..n).filter(visible).all(|g| as_f32(inputs.depths[g]).is_some()) {
+        let mut keys: Vec<u64> = (0..n)
+            .filter(visible)
+            .map(|g| {
+                let bits = as_f32(inputs.depths[g]).unwrap_or(0.0).to_bits();
+                let ordered = if bits >> 31 == 1 { !bits } else { bits | 1 << 31 };
+                (ordered as u64) << 32 | g as u64
+            })
+            .collect();
+        keys.par_sort_unstable();
+        keys.into_iter().map(|k| k as u32).collect()
+    } else {
+        let mut keys: Vec<(u64, u32)> = (0..n)
+            .filter(visible)
+            .map(|g| (depth_key(inputs.depths[g]), g as u32))
+            .collect();
+        keys.par_sort_unstable();
+        keys.into_iter().map(|(_, g)| g).collect()
+    }
+}
+
+/// A sort key ordering depths ascending (total order on the f64 bit pattern).
+#[inline]
+fn depth_key<T: Real>(d: T) -> u64 {
+    let bits = d.to_f64().unwrap_or(f64::NAN).to_bits();
+    // Flip negatives entirely and set the sign bit of positives: ascending as unsigned.
+    if bits >> 63 == 1 {
+        !bits
+    } else {
+        bits | 1 << 63
+    }
+}
