@@ -83,6 +83,12 @@ class SubjectWriter:
         self._with_normals: bool | None = None
         self._done = False
 
+    @property
+    def staging(self) -> Path:
+        """The temporary folder being filled: extra files written here move into place
+        with the subject."""
+        return self._tmp
+
     def __enter__(self) -> SubjectWriter:
         return self
 

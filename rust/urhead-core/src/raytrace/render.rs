@@ -340,7 +340,10 @@ impl Rig<'_> {
         let ndl = dot(n, l);
         let lit = (ndl + material.wrap) / (1.0 + material.wrap);
         let mut visible = if lit > 0.0 { 1.0 } else { 0.0 };
-        if visible > 0.0 && self.settings.shadows {
+        // Only surfaces facing the light cast shadow rays: past the terminator the wrapped
+        // diffuse term stands for light scattered under the skin, which a ray from the
+        // surface towards the light would always find blocked by the surface itself.
+        if visible > 0.0 && self.settings.shadows && dot(geo, l) > 0.0 {
             let eps = 1e-4 * (1.0 + hit.t);
             let start = [0, 1, 2].map(|c| p[c] + geo[c] * eps);
             if scene.occluded(start, l, 0.0, f32::INFINITY) {
