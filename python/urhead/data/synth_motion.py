@@ -72,7 +72,7 @@ def performance(
         length = int(rng.uniform(1.5, 4.0) * FPS)
         speaking[k : k + length] = 1
         k += length + int(rng.uniform(0.4, 1.5) * FPS)
-    speaking = np.convolve(speaking, np.ones(5) / 5, mode="same")
+    speaking = np.convolve(np.pad(speaking, 2, mode="edge"), np.ones(5) / 5, mode="valid")
     syllable_phase = 2 * np.pi * np.cumsum(4.5 + 1.2 * _smooth_noise(rng, n, 8)) / FPS
     syllables = 0.5 + 0.5 * np.sin(syllable_phase)
     jaw = speaking * (0.04 + 0.2 * syllables**1.5) * s + 0.02 * np.clip(
