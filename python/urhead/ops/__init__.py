@@ -2,6 +2,21 @@
 forward/backward pair, with a documented public function. Plain-torch references for
 tests live in :mod:`urhead.ops._reference`."""
 
+from urhead.ops.antialias import antialias, antialias_topology
+from urhead.ops.interpolate import interpolate
 from urhead.ops.lbs import LbsOutput, lbs
+from urhead.ops.rasterize import RasterOutput, UvRasterOutput, rasterize, rasterize_uv
+from urhead.ops.texture import texture
 
-__all__ = ["LbsOutput", "lbs"]
+__all__ = [
+    "LbsOutput",
+    "RasterOutput",
+    "UvRasterOutput",
+    "antialias",
+    "antialias_topology",
+    "interpolate",
+    "lbs",
+    "rasterize",
+    "rasterize_uv",
+    "texture",
+]

@@ -3,6 +3,8 @@ than speed. Tests compare the Rust kernels (forward and autograd gradients) agai
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from urhead.ops.lbs import LbsOutput
@@ -68,3 +70,301 @@ def lbs(
         verts = verts + transl[:, None]
         joints = joints + transl[:, None]
     return LbsOutput(verts, joints, blend_r)
+
+
+# --- Mesh rasterization (urhead.ops.rasterize / interpolate / texture / antialias) ---------
+
+_SUBPIXEL = 256
+_GUARD_BAND_PX = 16384.0
+
+
+def _round_half_away(x: torch.Tensor) -> torch.Tensor:
+    return torch.sign(x) * torch.floor(x.abs() + 0.5)
+
+
+def _homogeneous(verts: torch.Tensor, camera) -> torch.Tensor:
+    """(V, 3) world → (V, 3) homogeneous screen positions (X, Y, W) = K·p_cam."""
+    c = camera.world_to_camera(verts)
+    k = camera.K.to(verts.dtype)
+    return torch.stack(
+        [k[0, 0] * c[:, 0] + k[0, 2] * c[:, 2], k[1, 1] * c[:, 1] + k[1, 2] * c[:, 2], c[:, 2]], -1
+    )
+
+
+def _pixel_centres(height: int, width: int, dtype) -> torch.Tensor:
+    """(H·W, 3) homogeneous pixel centres (x + 0.5, y + 0.5, 1), row-major."""
+    ys, xs = torch.meshgrid(
+        torch.arange(height, dtype=dtype) + 0.5,
+        torch.arange(width, dtype=dtype) + 0.5,
+        indexing="ij",
+    )
+    return torch.stack(
+        [xs.reshape(-1), ys.reshape(-1), torch.ones(height * width, dtype=dtype)], -1
+    )
+
+
+def _raw_barycentrics(hom_tris: torch.Tensor, e: torch.Tensor) -> torch.Tensor:
+    """(F, 3, 3) triangles × (P, 3) pixels → (P, F, 3) unnormalised weights e·(h_j × h_k)."""
+    h0, h1, h2 = hom_tris.unbind(1)
+    normals = torch.stack(
+        [torch.linalg.cross(h1, h2), torch.linalg.cross(h2, h0), torch.linalg.cross(h0, h1)], 1
+    )
+    return torch.einsum("pc,fkc->pfk", e, normals)
+
+
+def _clamped(raw: torch.Tensor) -> torch.Tensor:
+    """Normalise, clamp to the simplex, renormalise (the kernel's rule)."""
+    lam = raw / raw.sum(-1, keepdim=True)
+    lam = torch.where(lam > 0, lam, torch.zeros_like(lam))
+    return lam / lam.sum(-1, keepdim=True)
+
+
+def _snapped_coverage(hom_tris: torch.Tensor, e: torch.Tensor) -> torch.Tensor:
+    """(P, F) coverage of the triangles snapped to 1/256 px, top-left rule, exact integers."""
+    xy = hom_tris[..., :2] / hom_tris[..., 2:]
+    p = _round_half_away(xy.detach().double() * _SUBPIXEL).long()
+    area2 = (p[:, 1, 0] - p[:, 0, 0]) * (p[:, 2, 1] - p[:, 0, 1]) - (p[:, 1, 1] - p[:, 0, 1]) * (
+        p[:, 2, 0] - p[:, 0, 0]
+    )
+    p = torch.where((area2 < 0)[:, None, None], p[:, [0, 2, 1]], p)
+    s = (e[:, :2].double() * _SUBPIXEL).round().long()  # exact: centres are on the grid
+    covered = (area2 != 0)[None, :].expand(e.shape[0], -1).clone()
+    for k in range(3):
+        a, b = p[:, k], p[:, (k + 1) % 3]
+        dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
+        edge = dx[None] * (s[:, 1:2] - a[None, :, 1]) - dy[None] * (s[:, 0:1] - a[None, :, 0])
+        top_left = (dy < 0) | ((dy == 0) & (dx > 0))
+        covered &= (edge > 0) | ((edge == 0) & top_left[None])
+    return covered
+
+
+def _needs_clipping(hom_tris: torch.Tensor, width: int, height: int, near: float) -> torch.Tensor:
+    x, y, w = hom_tris.detach().unbind(-1)
+    g = _GUARD_BAND_PX
+    inside = (
+        (w >= near)
+        & (x + g * w >= 0)
+        & ((width + g) * w - x >= 0)
+        & (y + g * w >= 0)
+        & ((height + g) * w - y >= 0)
+    )
+    return ~inside.all(-1)
+
+
+def _raster_homogeneous(hom, faces, height, width, near, far, chunk=256):
+    """Brute-force raster of homogeneous triangles: (tri_id, bary, depth) with gradients
+    flowing from ``hom`` into ``bary``.
+
+    Triangles entirely inside the near plane and guard band use the kernel's snapped
+    coverage exactly. Triangles that need clipping use exact geometry instead (weights all
+    ≥ 0 and depth ≥ near), so they may differ from the kernel on pixels within a sub-pixel
+    step of their edges.
+    """
+    f = faces.long()
+    e = _pixel_centres(height, width, hom.dtype)
+    best_depth = torch.full((e.shape[0],), float("inf"), dtype=torch.float64)
+    best_tri = torch.full((e.shape[0],), -1, dtype=torch.int64)
+    with torch.no_grad():
+        for start in range(0, f.shape[0], chunk):
+            tris = hom[f[start : start + chunk]].detach().double()
+            raw = _raw_barycentrics(tris, e.double())
+            lam = _clamped(raw)
+            w = tris[None, :, :, 2]
+            depth = (
+                w[..., 0]
+                + lam[..., 1] * (w[..., 1] - w[..., 0])
+                + lam[..., 2] * (w[..., 2] - w[..., 0])
+            )
+            clip = _needs_clipping(tris, width, height, near)
+            unclamped = raw / raw.sum(-1, keepdim=True)
+            exact = (unclamped >= 0).all(-1) & (depth >= near)
+            covered = torch.where(clip[None], exact, _snapped_coverage(tris, e.double()))
+            covered &= torch.isfinite(lam).all(-1) & (depth <= far)
+            depth = torch.where(covered, depth, torch.full_like(depth, float("inf")))
+            # Lexicographic (depth, id) minimum: strictly nearer wins, ties keep the lower id.
+            d_min, arg = depth.min(1)
+            better = d_min < best_depth
+            best_tri = torch.where(better, start + arg, best_tri)
+            best_depth = torch.where(better, d_min, best_depth)
+    covered = best_tri >= 0
+    tri_safe = best_tri.clamp(min=0)
+    tris = hom[f[tri_safe]]  # (P, 3, 3), differentiable
+    h0, h1, h2 = tris.unbind(1)
+    normals = torch.stack(
+        [torch.linalg.cross(h1, h2), torch.linalg.cross(h2, h0), torch.linalg.cross(h0, h1)], 1
+    )
+    raw = torch.einsum("pc,pkc->pk", e, normals)
+    lam = _clamped(torch.where(covered[:, None], raw, torch.ones_like(raw)))
+    zero = torch.zeros_like(lam[:, 1:])
+    bary = torch.where(covered[:, None], lam[:, 1:], zero).reshape(height, width, 2)
+    depth = torch.where(covered, best_depth, torch.full_like(best_depth, float("inf")))
+    tri_id = best_tri.to(torch.int32).reshape(height, width)
+    return tri_id, bary, depth.to(hom.dtype).reshape(height, width)
+
+
+def rasterize(verts, faces, camera):
+    """Reference of :func:`urhead.ops.rasterize`: every triangle tested at every pixel."""
+    from urhead.ops.rasterize import RasterOutput
+
+    hom = _homogeneous(verts, camera)
+    tri_id, bary, depth = _raster_homogeneous(
+        hom, faces, camera.height, camera.width, camera.near, camera.far
+    )
+    return RasterOutput(tri_id, bary, depth)
+
+
+def rasterize_uv(uv_coords, uv_faces, height, width):
+    """Reference of :func:`urhead.ops.rasterize_uv`."""
+    from urhead.ops.rasterize import UvRasterOutput
+
+    u, v = uv_coords.unbind(-1)
+    hom = torch.stack([u * width, (1 - v) * height, torch.ones_like(u)], -1)
+    tri_id, bary, _ = _raster_homogeneous(hom, uv_faces, height, width, 0.0, float("inf"))
+    return UvRasterOutput(tri_id, bary)
+
+
+def interpolate(attr, raster, faces):
+    """Reference of :func:`urhead.ops.interpolate`."""
+    tri = raster.tri_id.long()
+    covered = (tri >= 0)[..., None]
+    f = faces.long()[tri.clamp(min=0)]
+    b1, b2 = raster.bary.unbind(-1)
+    b0 = 1 - b1 - b2
+    out = (
+        b0[..., None] * attr[f[..., 0]]
+        + b1[..., None] * attr[f[..., 1]]
+        + b2[..., None] * attr[f[..., 2]]
+    )
+    return torch.where(covered, out, torch.zeros_like(out))
+
+
+def texture(tex, uv):
+    """Reference of :func:`urhead.ops.texture` (dense texture gradient)."""
+    ht, wt, _ = tex.shape
+    u, v = uv[..., 0], uv[..., 1]
+    finite = torch.isfinite(u) & torch.isfinite(v)
+    u = torch.where(finite, u, torch.zeros_like(u))
+    v = torch.where(finite, v, torch.zeros_like(v))
+    x = (u * wt - 0.5).clamp(-1, wt)
+    y = ((1 - v) * ht - 0.5).clamp(-1, ht)
+    x0, y0 = x.detach().floor(), y.detach().floor()
+    fx, fy = x - x0, y - y0
+    c0 = x0.long().clamp(0, wt - 1)
+    c1 = (x0.long() + 1).clamp(0, wt - 1)
+    r0 = y0.long().clamp(0, ht - 1)
+    r1 = (y0.long() + 1).clamp(0, ht - 1)
+    fx, fy = fx[..., None], fy[..., None]
+    out = (1 - fy) * ((1 - fx) * tex[r0, c0] + fx * tex[r0, c1]) + fy * (
+        (1 - fx) * tex[r1, c0] + fx * tex[r1, c1]
+    )
+    return torch.where(finite[..., None], out, torch.zeros_like(out))
+
+
+def edge_topology(faces) -> list[list[int]]:
+    """Reference of :func:`urhead.ops.antialias_topology` as nested lists."""
+    f = faces.tolist()
+    by_edge: dict[tuple[int, int], list[tuple[int, int]]] = {}
+    for i, t in enumerate(f):
+        if len(set(t)) < 3:
+            continue
+        for k in range(3):
+            a, b = t[(k + 1) % 3], t[(k + 2) % 3]
+            by_edge.setdefault((min(a, b), max(a, b)), []).append((i, k))
+    topo = [[-1, -1, -1] for _ in f]
+    for slots in by_edge.values():
+        if len(slots) == 2:
+            (i, k), (j, m) = slots
+            topo[i][k] = f[j][m]
+            topo[j][m] = f[i][k]
+    return topo
+
+
+def antialias(color, raster, verts, faces, camera):
+    """Reference of :func:`urhead.ops.antialias`, one pixel pair at a time. Decisions are
+    made on detached float64 values; the blend weight is differentiable, with the kernel's
+    1e-3 px guard applied to the gradient only (the forward uses the exact crossing)."""
+    height, width, _ = color.shape
+    cam = camera.world_to_camera(verts)
+    k = camera.K.to(verts.dtype)
+    proj = torch.stack(
+        [k[0, 0] * cam[:, 0] / cam[:, 2] + k[0, 2], k[1, 1] * cam[:, 1] / cam[:, 2] + k[1, 2]], -1
+    )
+    f = faces.tolist()
+    topo = edge_topology(faces)
+    cam_d = cam.detach().double()
+
+    def silhouette(t: int, e: int) -> bool:
+        if topo[t][e] < 0:
+            return True
+        a, b, own = cam_d[f[t][(e + 1) % 3]], cam_d[f[t][(e + 2) % 3]], cam_d[f[t][e]]
+        n = torch.linalg.cross(a, b)
+        return not float(n @ own) * float(n @ cam_d[topo[t][e]]) < 0
+
+    tri_id = raster.tri_id.tolist()
+    depth = raster.depth.tolist()
+    targets, weights, diffs = [], [], []
+    for y in range(height):
+        for x in range(width):
+            for vertical in (False, True):
+                x1, y1 = (x, y + 1) if vertical else (x + 1, y)
+                if x1 >= width or y1 >= height:
+                    continue
+                t0, t1 = tri_id[y][x], tri_id[y1][x1]
+                if t0 == t1:
+                    continue
+                if t0 < 0:
+                    first = False
+                elif t1 < 0:
+                    first = True
+                else:
+                    d0, d1 = depth[y][x], depth[y1][x1]
+                    first = d0 < d1 or (d0 == d1 and t0 < t1)
+                t = t0 if first else t1
+                if any(float(cam_d[v, 2]) <= camera.near for v in f[t]):
+                    continue
+                cx, cy = (x, y) if first else (x1, y1)
+                rel = proj[f[t]] - torch.tensor([cx + 0.5, cy + 0.5], dtype=proj.dtype)
+                if vertical:
+                    rel = rel.flip(-1)
+                direction = 1.0 if first else -1.0
+                rd = rel.detach().double().tolist()
+                best = None
+                for e in range(3):
+                    a, b = rd[(e + 1) % 3], rd[(e + 2) % 3]
+                    if (a[1] < 0) == (b[1] < 0):
+                        continue
+                    crossing = direction * (a[0] * b[1] - b[0] * a[1]) / (b[1] - a[1])
+                    if best is None or crossing > best[1]:
+                        best = (e, crossing)
+                if best is None:
+                    continue
+                e, d = best
+                a, b = rd[(e + 1) % 3], rd[(e + 2) % 3]
+                if not (
+                    silhouette(t, e)
+                    and abs(b[1] - a[1]) >= abs(b[0] - a[0])
+                    and -1 / 16 < d < 1 + 1 / 16
+                ):
+                    continue
+                alpha_value = direction * (0.5 - min(max(d, 0.0), 1.0))
+                if alpha_value == 0:
+                    continue
+                if abs(alpha_value) >= 0.5:
+                    alpha = torch.tensor(alpha_value, dtype=color.dtype)
+                else:
+                    ra, rb = rel[(e + 1) % 3], rel[(e + 2) % 3]
+                    num = ra[0] * rb[1] - rb[0] * ra[1]
+                    den = rb[1] - ra[1]
+                    guarded = num / (den + math.copysign(1e-3, float(den.detach())))
+                    crossing_x = guarded + (num / den - guarded).detach()
+                    alpha = direction * 0.5 - crossing_x
+                target = (y, x) if alpha_value > 0 else (y1, x1)
+                targets.append(target)
+                weights.append(alpha)
+                diffs.append(color[y1, x1] - color[y, x])
+    if not targets:
+        return color.clone()
+    ty = torch.tensor([t[0] for t in targets])
+    tx = torch.tensor([t[1] for t in targets])
+    contrib = torch.stack(weights)[:, None].to(color.dtype) * torch.stack(diffs)
+    return color.index_put((ty, tx), contrib, accumulate=True)

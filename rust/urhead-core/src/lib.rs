@@ -10,6 +10,7 @@ pub mod error;
 pub mod lbs;
 pub mod mat3;
 pub mod parallel;
+pub mod raster;
 pub mod raytrace;
 pub mod real;
 pub mod testing;

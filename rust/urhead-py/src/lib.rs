@@ -7,6 +7,7 @@ mod camera;
 mod errors;
 mod lbs;
 mod pool;
+mod raster;
 mod raytrace;
 
 use pyo3::prelude::*;
@@ -27,6 +28,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(lbs::lbs_backward_f32, m)?)?;
     m.add_function(wrap_pyfunction!(lbs::lbs_forward_f64, m)?)?;
     m.add_function(wrap_pyfunction!(lbs::lbs_backward_f64, m)?)?;
+    raster::register(m)?;
     m.add_function(wrap_pyfunction!(raytrace::raytrace_render, m)?)?;
     Ok(())
 }

@@ -1,0 +1,72 @@
+"""Attribute interpolation over a rasterized mesh, Rust forward and adjoint."""
+
+from __future__ import annotations
+
+import torch
+
+from urhead._threads import num_threads
+from urhead.errors import DTypeError
+from urhead.ops._bridge import float_dtype, from_numpy, grad_to_numpy, kernel, to_numpy
+from urhead.ops.rasterize import RasterOutput, UvRasterOutput, check_shape, index_tensor
+
+
+class _Interpolate(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, attr, bary, tri_id, faces):
+        dtype = attr.dtype
+        out = kernel("interpolate_forward", dtype)(
+            to_numpy("attr", attr, dtype),
+            to_numpy("faces", faces, torch.int32),
+            to_numpy("tri_id", tri_id, torch.int32),
+            to_numpy("bary", bary, dtype),
+            num_threads(),
+        )
+        ctx.set_materialize_grads(False)
+        ctx.save_for_backward(attr, bary, tri_id, faces)
+        return torch.from_numpy(out)
+
+    @staticmethod
+    def backward(ctx, v_out):
+        needs = (ctx.needs_input_grad[0], ctx.needs_input_grad[1])
+        if v_out is None or not any(needs):
+            return None, None, None, None
+        attr, bary, tri_id, faces = ctx.saved_tensors
+        dtype = attr.dtype
+        v_attr, v_bary = kernel("interpolate_backward", dtype)(
+            attr.detach().numpy(),
+            faces.numpy(),
+            tri_id.numpy(),
+            bary.detach().numpy(),
+            grad_to_numpy("v_out", v_out, dtype),
+            needs,
+            num_threads(),
+        )
+        return from_numpy(v_attr), from_numpy(v_bary), None, None
+
+
+def interpolate(
+    attr: torch.Tensor, raster: RasterOutput | UvRasterOutput, faces: torch.Tensor
+) -> torch.Tensor:
+    """Interpolates per-vertex attributes over the rasterized triangles.
+
+    Args:
+        attr: (V, C) attributes, same dtype as ``raster.bary``.
+        raster: the output of :func:`urhead.ops.rasterize` (or ``rasterize_uv``).
+        faces: (F, 3) int32 indices into ``attr``, triangle-for-triangle with the faces
+            that were rasterized: the geometry faces for per-vertex attributes, the UV
+            faces for UV coordinates.
+
+    Returns:
+        (H, W, C): ``(1 - b1 - b2)·attr[f0] + b1·attr[f1] + b2·attr[f2]``, 0 where empty.
+
+    Gradients flow to ``attr`` and, through ``raster.bary``, to the rasterized vertices.
+    """
+    dtype = float_dtype("attr", attr)
+    check_shape("attr", attr, 2, None, "(V, C)")
+    if raster.bary.dtype != dtype:
+        raise DTypeError(
+            f"attr must have the dtype of raster.bary ({raster.bary.dtype}), got {dtype}"
+        )
+    faces = index_tensor("faces", faces)
+    check_shape("faces", faces, 2, 3, "(F, 3) int32")
+    return _Interpolate.apply(attr, raster.bary, raster.tri_id, faces)

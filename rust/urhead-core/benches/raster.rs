@@ -1,0 +1,226 @@
+//! The mesh branch at FLAME size: a deformed sphere of 10 080 faces (5 112 vertices) at
+//! 512 × 512 covering about 45 % of the image, sampling a 56-channel 2048² texture.
+//!
+//! `chain` runs rasterize → interpolate (UV) → texture (56 channels) → a fixed 56 → 3
+//! linear map standing in for SH evaluation → antialias, forward and backward (the texture
+//! gradient sparse). The other benchmarks time each op alone.
+
+use criterion::{criterion_group, criterion_main, Criterion};
+use urhead_core::raster::{
+    antialias_backward, antialias_forward, edge_topology, interpolate_backward, interpolate_forward,
+    rasterize_backward, rasterize_forward, texture_backward, texture_forward, AntialiasInputs,
+};
+use urhead_core::testing::Rng;
+use urhead_core::Camera;
+
+const SIDE: u32 = 512;
+const TEX: usize = 2048;
+const CHANNELS: usize = 56;
+
+struct Scene {
+    verts: Vec<f32>,
+    faces: Vec<i32>,
+    uvs: Vec<f32>,
+    topology: Vec<i32>,
+    tex: Vec<f32>,
+    /// `(CHANNELS, 3)`: the stand-in for SH evaluation.
+    mix: Vec<f32>,
+    camera: Camera,
+}
+
+/// A bumpy latitude–longitude sphere with per-vertex UVs (the seam is not split: the bench
+/// only needs realistic UV footprints).
+fn scene() -> Scene {
+    let (n_lat, n_lon) = (70, 72);
+    let mut verts = Vec::new();
+    let mut uvs = Vec::new();
+    for i in 0..=n_lat {
+        let theta = std::f32::consts::PI * i as f32 / n_lat as f32;
+        for j in 0..n_lon {
+            let phi = 2.0 * std::f32::consts::PI * j as f32 / n_lon as f32;
+            let r = 0.1 * (1.0 + 0.08 * (3.0 * phi).sin() * (2.0 * theta).sin() + 0.05 * (5.0 * theta).cos());
+            verts.extend([
+                r * theta.sin() * phi.cos(),
+                r * 1.2 * theta.cos(),
+                0.6 + r * theta.sin() * phi.sin(),
+            ]);
+            uvs.extend([j as f32 / n_lon as f32, 1.0 - i as f32 / n_lat as f32]);
+        }
+    }
+    let mut faces = Vec::new();
+    for i in 0..n_lat {
+        for j in 0..n_lon {
+            let (a, b) = (i * n_lon + j, i * n_lon + (j + 1) % n_lon);
+            let (c, d) = ((i + 1) * n_lon + j, (i + 1) * n_lon + (j + 1) % n_lon);
+            faces.extend([a, c, b, b, c, d].map(|x| x as i32));
+        }
+    }
+    let f = 900.0;
+    let k = [[f, 0.0, 256.0], [0.0, f, 256.0], [0.0, 0.0, 1.0]];
+    let eye = [
+        [1.0, 0.0, 0.0, 0.0],
+        [0.0, 1.0, 0.0, 0.0],
+        [0.0, 0.0, 1.0, 0.0],
+        [0.0, 0.0, 0.0, 1.0],
+    ];
+    let camera = Camera::new(k, eye, SIDE, SIDE, 0.01, 100.0).unwrap();
+    let mut rng = Rng::new(1);
+    let tex = rng.vec(TEX * TEX * CHANNELS, -1.0, 1.0);
+    let mix = rng.vec(CHANNELS * 3, -0.2, 0.2);
+    let topology = edge_topology(&faces, verts.len() / 3).unwrap();
+    Scene {
+        verts,
+        faces,
+        uvs,
+        topology,
+        tex,
+        mix,
+        camera,
+    }
+}
+
+/// `(N, CHANNELS) → (N, 3)` and its transpose.
+fn mix_forward(x: &[f32], mix: &[f32]) -> Vec<f32> {
+    x.chunks_exact(CHANNELS)
+        .flat_map(|px| {
+            let mut o = [0.0f32; 3];
+            for (k, v) in px.iter().enumerate() {
+                for c in 0..3 {
+                    o[c] += v * mix[k * 3 + c];
+                }
+            }
+            o
+        })
+        .collect()
+}
+
+fn mix_backward(g: &[f32], mix: &[f32]) -> Vec<f32> {
+    g.chunks_exact(3)
+        .flat_map(|g| {
+            (0..CHANNELS).map(move |k| g[0] * mix[k * 3] + g[1] * mix[k * 3 + 1] + g[2] * mix[k * 3 + 2])
+        })
+        .collect()
+}
+
+fn chain(s: &Scene, g_out: &[f32]) -> usize {
+    let (h, w) = (SIDE as usize, SIDE as usize);
+    let raster = rasterize_forward(&s.verts, &s.faces, &s.camera).unwrap();
+    let uv = interpolate_forward(&s.uvs, 2, &s.faces, &raster.tri_id, &raster.bary, h, w).unwrap();
+    let sampled = texture_forward(&s.tex, TEX, TEX, CHANNELS, &uv).unwrap();
+    let color = mix_forward(&sampled, &s.mix);
+    let aa = AntialiasInputs {
+        color: &color,
+        channels: 3,
+        tri_id: &raster.tri_id,
+        depth: &raster.depth,
+        verts: &s.verts,
+        faces: &s.faces,
+        topology: &s.topology,
+        camera: &s.camera,
+    };
+    let _image = antialias_forward(&aa).unwrap();
+    let g_aa = antialias_backward(&aa, g_out, true, true).unwrap();
+    let g_sampled = mix_backward(g_aa.v_color.as_ref().unwrap(), &s.mix);
+    let g_tex = texture_backward(&s.tex, TEX, TEX, CHANNELS, &uv, &g_sampled, true, true).unwrap();
+    let g_interp = interpolate_backward(
+        &s.uvs,
+        2,
+        &s.faces,
+        &raster.tri_id,
+        &raster.bary,
+        h,
+        w,
+        g_tex.v_uv.as_ref().unwrap(),
+        false,
+        true,
+    )
+    .unwrap();
+    let g_verts = rasterize_backward(
+        &s.verts,
+        &s.faces,
+        &s.camera,
+        &raster.tri_id,
+        g_interp.v_bary.as_ref().unwrap(),
+    )
+    .unwrap();
+    g_verts.len() + g_tex.v_tex.map_or(0, |t| t.nnz)
+}
+
+fn bench_raster(c: &mut Criterion) {
+    let s = scene();
+    let (h, w) = (SIDE as usize, SIDE as usize);
+    let raster = rasterize_forward(&s.verts, &s.faces, &s.camera).unwrap();
+    let covered = raster.tri_id.iter().filter(|&&t| t >= 0).count();
+    eprintln!(
+        "scene: {} faces, {} vertices, {:.1} % of {SIDE}² covered, texture {TEX}² × {CHANNELS}",
+        s.faces.len() / 3,
+        s.verts.len() / 3,
+        100.0 * covered as f64 / (h * w) as f64
+    );
+    let mut rng = Rng::new(2);
+    let g_bary = rng.vec::<f32>(h * w * 2, -1.0, 1.0);
+    let g_uv_out = rng.vec::<f32>(h * w * 2, -1.0, 1.0);
+    let g_rgb = rng.vec::<f32>(h * w * 3, -1.0, 1.0);
+    let g_sampled = rng.vec::<f32>(h * w * CHANNELS, -1.0, 1.0);
+    let uv = interpolate_forward(&s.uvs, 2, &s.faces, &raster.tri_id, &raster.bary, h, w).unwrap();
+    let color = mix_forward(&texture_forward(&s.tex, TEX, TEX, CHANNELS, &uv).unwrap(), &s.mix);
+    let aa = AntialiasInputs {
+        color: &color,
+        channels: 3,
+        tri_id: &raster.tri_id,
+        depth: &raster.depth,
+        verts: &s.verts,
+        faces: &s.faces,
+        topology: &s.topology,
+        camera: &s.camera,
+    };
+
+    let mut group = c.benchmark_group("raster");
+    group.sample_size(20);
+    group.bench_function("chain_forward_backward", |b| b.iter(|| chain(&s, &g_rgb)));
+    group.bench_function("rasterize_forward", |b| {
+        b.iter(|| rasterize_forward(&s.verts, &s.faces, &s.camera).unwrap())
+    });
+    group.bench_function("rasterize_backward", |b| {
+        b.iter(|| rasterize_backward(&s.verts, &s.faces, &s.camera, &raster.tri_id, &g_bary).unwrap())
+    });
+    group.bench_function("interpolate_forward", |b| {
+        b.iter(|| interpolate_forward(&s.uvs, 2, &s.faces, &raster.tri_id, &raster.bary, h, w).unwrap())
+    });
+    group.bench_function("interpolate_backward", |b| {
+        b.iter(|| {
+            interpolate_backward(
+                &s.uvs,
+                2,
+                &s.faces,
+                &raster.tri_id,
+                &raster.bary,
+                h,
+                w,
+                &g_uv_out,
+                true,
+                true,
+            )
+            .unwrap()
+        })
+    });
+    group.bench_function("texture_forward", |b| {
+        b.iter(|| texture_forward(&s.tex, TEX, TEX, CHANNELS, &uv).unwrap())
+    });
+    group.bench_function("texture_backward", |b| {
+        b.iter(|| texture_backward(&s.tex, TEX, TEX, CHANNELS, &uv, &g_sampled, true, true).unwrap())
+    });
+    group.bench_function("antialias_forward", |b| {
+        b.iter(|| antialias_forward(&aa).unwrap())
+    });
+    group.bench_function("antialias_backward", |b| {
+        b.iter(|| antialias_backward(&aa, &g_rgb, true, true).unwrap())
+    });
+    group.bench_function("topology", |b| {
+        b.iter(|| edge_topology(&s.faces, s.verts.len() / 3).unwrap())
+    });
+    group.finish();
+}
+
+criterion_group!(benches, bench_raster);
+criterion_main!(benches);

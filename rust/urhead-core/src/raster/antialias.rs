@@ -1,0 +1,387 @@
+//! `antialias`: analytic antialiasing of silhouette edges, after nvdiffrast (Laine et al.
+//! 2020, "Modular primitives for high-performance differentiable rendering"), giving the
+//! image a gradient with respect to where silhouettes lie.
+//!
+//! For every pair of horizontally or vertically adjacent pixels with different triangle
+//! ids, the nearer triangle (or the only one, against background) is examined along the
+//! segment joining the two pixel centres. The triangle edge where that segment leaves it is
+//! found; if it is a silhouette edge — open (boundary / non-manifold), or its neighbour
+//! lies on the same side of it as seen from the camera — and more perpendicular than
+//! parallel to the segment, and it crosses at distance `d ∈ (−1/16, 1 + 1/16)` pixels from
+//! the inside pixel centre (`d` clamped to [0, 1]), the two colours are blended:
+//! `α = ±(0.5 − d)`; the inside pixel takes `α` of the outside colour when `d < 0.5`,
+//! otherwise the outside pixel takes `d − 0.5` of the inside colour. The blend is
+//! continuous as an edge sweeps across a pixel centre.
+//!
+//! Gradients: to the colours (linear) and to the two vertices of the crossing edge
+//! through `d`, with the edge's extent across the segment guarded by `copysign(1e-3 px)`
+//! and no position gradient where `|α| ≥ 0.5` (a clamped crossing). Triangles with a
+//! vertex at depth `≤ near` are not antialiased (their projection is not a triangle).
+//! Pass the welded geometry faces: UV-split faces would make every seam a silhouette.
+
+use rayon::prelude::*;
+
+use super::rasterize::camera_to_world_gradient;
+use super::{check_faces, check_tri_id, TILE_ROWS};
+use crate::camera::Camera;
+use crate::error::{check_finite, check_indices, check_len, Error, Result};
+use crate::Real;
+
+/// Crossings up to this far outside the segment (pixels) are accepted and clamped.
+const CROSSING_TOLERANCE: f64 = 1.0 / 16.0;
+/// Guard on the edge's extent across the segment in the gradient (pixels).
+const GRADIENT_GUARD: f64 = 1e-3;
+
+/// Gradients of [`antialias_backward`]; a field is `Some` exactly when it was asked for.
+#[derive(Debug, Clone, Default)]
+pub struct AntialiasGrads<T> {
+    /// `(H, W, C)`
+    pub v_color: Option<Vec<T>>,
+    /// `(V, 3)`
+    pub v_verts: Option<Vec<T>>,
+}
+
+/// Borrowed inputs shared by both passes.
+pub struct AntialiasInputs<'a, T> {
+    /// `(H, W, C)` colour to antialias.
+    pub color: &'a [T],
+    pub channels: usize,
+    /// `(H, W)` from the rasterizer.
+    pub tri_id: &'a [i32],
+    /// `(H, W)` linear depth from the rasterizer.
+    pub depth: &'a [T],
+    /// `(V, 3)` world-space vertices the raster was made from.
+    pub verts: &'a [T],
+    /// `(F, 3)` welded geometry faces.
+    pub faces: &'a [i32],
+    /// `(F, 3)` from [`super::edge_topology`] for these faces.
+    pub topology: &'a [i32],
+    pub camera: &'a Camera,
+}
+
+/// Per-call geometry: projected vertices and per-triangle silhouette-edge masks.
+struct Scene<'a, T> {
+    width: usize,
+    height: usize,
+    tri_id: &'a [i32],
+    depth: &'a [T],
+    faces: &'a [i32],
+    /// `(V, 3)`: pixel x, pixel y, camera depth.
+    projected: Vec<[f64; 3]>,
+    /// Bit k set when edge k (opposite vertex k) of the triangle is a silhouette edge.
+    silhouette: Vec<u8>,
+}
+
+/// One antialiased pixel pair.
+#[derive(Debug, Clone, Copy)]
+struct Blend {
+    /// The pair: `p1` is right of / below `p0`.
+    p0: usize,
+    p1: usize,
+    /// Weight of `color[p1] − color[p0]` added to the target pixel.
+    alpha: f64,
+    /// The crossing edge's vertices, and their positions relative to the inside pixel
+    /// centre in the pair's frame (x along the pair, y across; swapped for vertical pairs).
+    verts: [usize; 2],
+    rel: [[f64; 2]; 2],
+    vertical: bool,
+}
+
+impl Blend {
+    fn target(&self) -> usize {
+        if self.alpha > 0.0 {
+            self.p0
+        } else {
+            self.p1
+        }
+    }
+}
+
+impl<'a, T: Real> AntialiasInputs<'a, T> {
+    fn validate(&self) -> Result<(usize, usize, usize)> {
+        let (w, h, c) = (
+            self.camera.width as usize,
+            self.camera.height as usize,
+            self.channels,
+        );
+        if c == 0 {
+            return Err(Error::Shape {
+                arg: "color",
+                expected: "(H, W, C) with C ≥ 1".into(),
+                got: "C = 0".into(),
+            });
+        }
+        check_len(
+            "color",
+            self.color,
+            h * w * c,
+            &format!("(H, W, C) = ({h}, {w}, {c})"),
+        )?;
+        if self.verts.len() % 3 != 0 {
+            return Err(Error::Shape {
+                arg: "verts",
+                expected: "(V, 3)".into(),
+                got: format!("{} elements", self.verts.len()),
+            });
+        }
+        let num_verts = self.verts.len() / 3;
+        let num_faces = check_faces("faces", self.faces, num_verts, "V")?;
+        check_tri_id(self.tri_id, h, w, num_faces)?;
+        check_len("depth", self.depth, h * w, &format!("(H, W) = ({h}, {w})"))?;
+        check_len(
+            "topology",
+            self.topology,
+            3 * num_faces,
+            &format!("(F, 3) = ({num_faces}, 3)"),
+        )?;
+        check_indices("topology", self.topology, -1, num_verts as i64)?;
+        check_finite("verts", self.verts)?;
+        Ok((w, h, c))
+    }
+
+    fn scene(&self) -> Scene<'a, T> {
+        let cam = self.camera;
+        let m = cam.viewmat.map(|row| row.map(|x| x as f64));
+        let (fx, fy, cx, cy) = (cam.fx as f64, cam.fy as f64, cam.cx as f64, cam.cy as f64);
+        let cam_space: Vec<[f64; 3]> = self
+            .verts
+            .chunks_exact(3)
+            .map(|p| {
+                let p = [0, 1, 2].map(|k| p[k].to_f64().unwrap_or(f64::NAN));
+                [0, 1, 2].map(|r| m[r][0] * p[0] + m[r][1] * p[1] + m[r][2] * p[2] + m[r][3])
+            })
+            .collect();
+        let projected = cam_space
+            .iter()
+            .map(|c| [fx * c[0] / c[2] + cx, fy * c[1] / c[2] + cy, c[2]])
+            .collect();
+        let near = cam.near as f64;
+        let silhouette = self
+            .faces
+            .par_chunks(3)
+            .zip(self.topology.par_chunks(3))
+            .map(|(f, opp)| {
+                let v = [0, 1, 2].map(|k| &cam_space[f[k] as usize]);
+                if v.iter().any(|c| c[2] <= near || c[2].is_nan()) {
+                    return 0u8;
+                }
+                let mut mask = 0u8;
+                for k in 0..3 {
+                    let (a, b) = (v[(k + 1) % 3], v[(k + 2) % 3]);
+                    let silhouette = opp[k] < 0 || {
+                        // Sides of the plane through the camera centre and the edge.
+                        let own = side(a, b, v[k]);
+                        let other = side(a, b, &cam_space[opp[k] as usize]);
+                        let product = own * other;
+                        product >= 0.0 || product.is_nan()
+                    };
+                    mask |= u8::from(silhouette) << k;
+                }
+                mask
+            })
+            .collect();
+        Scene {
+            width: cam.width as usize,
+            height: cam.height as usize,
+            tri_id: self.tri_id,
+            depth: self.depth,
+            faces: self.faces,
+            projected,
+            silhouette,
+        }
+    }
+}
+
+/// det(a, b, p): which side of the plane through the origin, `a` and `b` the point lies.
+fn side(a: &[f64; 3], b: &[f64; 3], p: &[f64; 3]) -> f64 {
+    p[0] * (a[1] * b[2] - a[2] * b[1])
+        + p[1] * (a[2] * b[0] - a[0] * b[2])
+        + p[2] * (a[0] * b[1] - a[1] * b[0])
+}
+
+impl<T: Real> Scene<'_, T> {
+    /// Blends of the pairs owned by rows of `tile` (pairs to the right and below), in
+    /// pixel order. Shared by forward and backward, so both make the same decisions.
+    fn tile_blends(&self, tile: usize) -> Vec<Blend> {
+        let (w, h) = (self.width, self.height);
+        let mut out = Vec::new();
+        for y in tile * TILE_ROWS..((tile + 1) * TILE_ROWS).min(h) {
+            for x in 0..w {
+                let p = y * w + x;
+                if x + 1 < w {
+                    out.extend(self.blend(p, p + 1, x, y, false));
+                }
+                if y + 1 < h {
+                    out.extend(self.blend(p, p + w, x, y, true));
+                }
+            }
+        }
+        out
+    }
+
+    fn blend(&self, p0: usize, p1: usize, x: usize, y: usize, vertical: bool) -> Option<Blend> {
+        let (t0, t1) = (self.tri_id[p0], self.tri_id[p1]);
+        if t0 == t1 {
+            return None;
+        }
+        let first_inside = if t0 < 0 {
+            false
+        } else if t1 < 0 {
+            true
+        } else {
+            let (d0, d1) = (self.depth[p0], self.depth[p1]);
+            d0 < d1 || (d0 == d1 && t0 < t1)
+        };
+        let tri = if first_inside { t0 } else { t1 } as usize;
+        let mask = self.silhouette[tri];
+        if mask == 0 {
+            return None;
+        }
+        // Frame: origin at the inside pixel centre, x along the pair, y across it.
+        let (ix, iy) = if first_inside {
+            (x, y)
+        } else if vertical {
+            (x, y + 1)
+        } else {
+            (x + 1, y)
+        };
+        let centre = [ix as f64 + 0.5, iy as f64 + 0.5];
+        let f = &self.faces[3 * tri..3 * tri + 3];
+        let rel = [0, 1, 2].map(|k| {
+            let q = &self.projected[f[k] as usize];
+            let (dx, dy) = (q[0] - centre[0], q[1] - centre[1]);
+            if vertical {
+                [dy, dx]
+            } else {
+                [dx, dy]
+            }
+        });
+        // Distance along the pair direction at which each crossing edge leaves the
+        // triangle; the exit edge is the farthest crossing.
+        let dir = if first_inside { 1.0 } else { -1.0 };
+        let mut exit: Option<(usize, f64)> = None;
+        for k in 0..3 {
+            let (a, b) = (rel[(k + 1) % 3], rel[(k + 2) % 3]);
+            if (a[1] < 0.0) == (b[1] < 0.0) {
+                continue;
+            }
+            let crossing = dir * (a[0] * b[1] - b[0] * a[1]) / (b[1] - a[1]);
+            if exit.is_none_or(|(_, d)| crossing > d) {
+                exit = Some((k, crossing));
+            }
+        }
+        let (k, d) = exit?;
+        let (a, b) = (rel[(k + 1) % 3], rel[(k + 2) % 3]);
+        let (ex, ey) = (b[0] - a[0], b[1] - a[1]);
+        let accept = mask & (1 << k) != 0
+            && ey.abs() >= ex.abs()
+            && d > -CROSSING_TOLERANCE
+            && d < 1.0 + CROSSING_TOLERANCE;
+        if !accept {
+            return None;
+        }
+        let alpha = dir * (0.5 - d.clamp(0.0, 1.0));
+        (alpha != 0.0).then_some(Blend {
+            p0,
+            p1,
+            alpha,
+            verts: [f[(k + 1) % 3] as usize, f[(k + 2) % 3] as usize],
+            rel: [a, b],
+            vertical,
+        })
+    }
+
+    fn all_blends(&self) -> Vec<Vec<Blend>> {
+        (0..self.height.div_ceil(TILE_ROWS))
+            .into_par_iter()
+            .map(|tile| self.tile_blends(tile))
+            .collect()
+    }
+}
+
+/// Antialiased copy of `inputs.color`, `(H, W, C)`.
+pub fn antialias_forward<T: Real>(inputs: &AntialiasInputs<T>) -> Result<Vec<T>> {
+    let (_, _, c) = inputs.validate()?;
+    let scene = inputs.scene();
+    let blends = scene.all_blends();
+    let color = inputs.color;
+    let mut out = color.to_vec();
+    for b in blends.iter().flatten() {
+        let t = b.target();
+        let alpha = T::c(b.alpha);
+        for k in 0..c {
+            out[t * c + k] += alpha * (color[b.p1 * c + k] - color[b.p0 * c + k]);
+        }
+    }
+    Ok(out)
+}
+
+/// Adjoint of [`antialias_forward`] given `v_out (H, W, C)`.
+pub fn antialias_backward<T: Real>(
+    inputs: &AntialiasInputs<T>,
+    v_out: &[T],
+    need_color: bool,
+    need_verts: bool,
+) -> Result<AntialiasGrads<T>> {
+    let (w, h, c) = inputs.validate()?;
+    check_len("v_out", v_out, h * w * c, &format!("(H, W, C) = ({h}, {w}, {c})"))?;
+    let scene = inputs.scene();
+    let blends = scene.all_blends();
+    let color = inputs.color;
+    let v_color = need_color.then(|| {
+        let mut v_color = v_out.to_vec();
+        for b in blends.iter().flatten() {
+            let t = b.target();
+            let alpha = T::c(b.alpha);
+            for k in 0..c {
+                let g = alpha * v_out[t * c + k];
+                v_color[b.p0 * c + k] -= g;
+                v_color[b.p1 * c + k] += g;
+            }
+        }
+        v_color
+    });
+    let v_verts = need_verts.then(|| {
+        let cam = inputs.camera;
+        let (fx, fy, cx, cy) = (cam.fx as f64, cam.fy as f64, cam.cx as f64, cam.cy as f64);
+        let mut v_cam = vec![0.0f64; inputs.verts.len()];
+        for b in blends.iter().flatten() {
+            if b.alpha.abs() >= 0.5 {
+                continue;
+            }
+            let t = b.target();
+            let mut dd = 0.0f64;
+            for k in 0..c {
+                let diff = color[b.p1 * c + k] - color[b.p0 * c + k];
+                dd += (v_out[t * c + k] * diff).to_f64().unwrap_or(0.0);
+            }
+            if dd == 0.0 {
+                continue;
+            }
+            // α = ±0.5 − x_c with x_c = (a.x·b.y − b.x·a.y)/(b.y − a.y) in the pair frame.
+            let [a, bb] = b.rel;
+            let ey = bb[1] - a[1];
+            let inv = 1.0 / (ey + GRADIENT_GUARD.copysign(ey));
+            let xc = (a[0] * bb[1] - bb[0] * a[1]) * inv;
+            let g = -dd;
+            let frame = [
+                [g * bb[1] * inv, g * (xc - bb[0]) * inv],
+                [-g * a[1] * inv, g * (a[0] - xc) * inv],
+            ];
+            for (v, gf) in b.verts.iter().zip(frame) {
+                let (gx, gy) = if b.vertical {
+                    (gf[1], gf[0])
+                } else {
+                    (gf[0], gf[1])
+                };
+                let q = &scene.projected[*v];
+                let z = q[2];
+                v_cam[3 * v] += gx * fx / z;
+                v_cam[3 * v + 1] += gy * fy / z;
+                v_cam[3 * v + 2] -= (gx * (q[0] - cx) + gy * (q[1] - cy)) / z;
+            }
+        }
+        camera_to_world_gradient(&v_cam, cam)
+    });
+    Ok(AntialiasGrads { v_color, v_verts })
+}

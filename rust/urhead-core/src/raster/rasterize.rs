@@ -1,0 +1,234 @@
+//! `rasterize`: perspective rasterization (forward) and the gradient of the barycentrics
+//! with respect to world-space vertex positions (backward). Depth is an output for
+//! occlusion tests and compositing only; it is not differentiated.
+
+use rayon::prelude::*;
+
+use super::bins::Bins;
+use super::runs::{merge_runs, TriangleRuns};
+use super::setup::{barycentrics, barycentrics_vjp, cross, setup_triangles, Hom, Setup, Viewport};
+use super::{check_faces, check_tri_id, RasterImage, TILE_ROWS};
+use crate::camera::Camera;
+use crate::error::{check_finite, check_len, Error, Result};
+use crate::Real;
+
+/// Rasterizes `faces (F, 3)` of `verts (V, 3)` (world space) through `camera`.
+///
+/// Errors (before any work): wrong shapes, an empty mesh, face indices out of range,
+/// non-finite vertices.
+pub fn rasterize_forward<T: Real>(verts: &[T], faces: &[i32], camera: &Camera) -> Result<RasterImage<T>> {
+    let hom = validate(verts, faces, camera)?;
+    let vp = viewport(camera);
+    let setup = setup_triangles::<T>(&hom, faces, &vp);
+    Ok(scan_tiles(&setup, &vp, T::c(camera.far as f64)))
+}
+
+/// Gradient of a loss with respect to `verts (V, 3)` given its gradient `v_bary (H, W, 2)`
+/// with respect to the barycentrics of [`rasterize_forward`], whose `tri_id (H, W)` is
+/// passed back. The barycentrics are recomputed with the forward's own per-pixel function.
+pub fn rasterize_backward<T: Real>(
+    verts: &[T],
+    faces: &[i32],
+    camera: &Camera,
+    tri_id: &[i32],
+    v_bary: &[T],
+) -> Result<Vec<T>> {
+    let hom = validate(verts, faces, camera)?;
+    let vp = viewport(camera);
+    let (w, h) = (vp.width, vp.height);
+    let num_faces = faces.len() / 3;
+    check_tri_id(tri_id, h, w, num_faces)?;
+    check_len("v_bary", v_bary, h * w * 2, &format!("(H, W, 2) = ({h}, {w}, 2)"))?;
+    let setup = setup_triangles::<T>(&hom, faces, &vp);
+
+    // Per pixel, the gradient g of the raw plane values λ̃_i = e·(h'_j × h'_k) is needed
+    // only through the moments M_i = Σ_pixels g_i·e, e = (ex, ey, 1); so each tile
+    // accumulates 9 numbers per triangle and the vertex gradients follow per triangle.
+    let runs: Vec<TriangleRuns<T>> = (0..vp.num_tiles())
+        .into_par_iter()
+        .map(|tile| {
+            let mut runs = TriangleRuns::new(9);
+            for py in tile * TILE_ROWS..((tile + 1) * TILE_ROWS).min(h) {
+                for px in 0..w {
+                    let idx = py * w + px;
+                    let (g1, g2) = (v_bary[2 * idx], v_bary[2 * idx + 1]);
+                    let tri = tri_id[idx];
+                    if tri < 0 || (g1 == T::zero() && g2 == T::zero()) {
+                        continue;
+                    }
+                    let Some(planes) = &setup.planes[tri as usize] else {
+                        continue;
+                    };
+                    let (ex, ey) = planes.offset(px, py);
+                    let Some(b) = barycentrics(planes.raw(ex, ey)) else {
+                        continue;
+                    };
+                    let g = barycentrics_vjp(&b, [T::zero(), g1, g2]);
+                    let slot = runs.slot(tri as u32);
+                    for i in 0..3 {
+                        slot[3 * i] += g[i] * ex;
+                        slot[3 * i + 1] += g[i] * ey;
+                        slot[3 * i + 2] += g[i];
+                    }
+                }
+            }
+            runs
+        })
+        .collect();
+    let moments = merge_runs(&runs, num_faces, 9);
+
+    let (fx, fy, cx, cy) = (
+        camera.fx as f64,
+        camera.fy as f64,
+        camera.cx as f64,
+        camera.cy as f64,
+    );
+    let mut v_cam = vec![0.0f64; verts.len()];
+    for (f, m) in moments.chunks_exact(9).enumerate() {
+        let Some(planes) = &setup.planes[f] else {
+            continue;
+        };
+        if m.iter().all(|x| *x == T::zero()) {
+            continue;
+        }
+        let m: [[f64; 3]; 3] =
+            [0, 1, 2].map(|i| [0, 1, 2].map(|k| m[3 * i + k].to_f64().unwrap_or(0.0) * planes.scale));
+        let g_hom = hom_gradients(&m, &planes.hom);
+        let (ox, oy) = (planes.origin[0] as f64, planes.origin[1] as f64);
+        for k in 0..3 {
+            let g = g_hom[k];
+            // h' = (X − ox·W, Y − oy·W, W) and h = (fx·x + cx·z, fy·y + cy·z, z).
+            let (gx, gy, gw) = (g[0], g[1], g[2] - ox * g[0] - oy * g[1]);
+            let v = faces[3 * f + k] as usize;
+            v_cam[3 * v] += fx * gx;
+            v_cam[3 * v + 1] += fy * gy;
+            v_cam[3 * v + 2] += cx * gx + cy * gy + gw;
+        }
+    }
+    Ok(camera_to_world_gradient(&v_cam, camera))
+}
+
+/// Gradients of the three (shifted) homogeneous vertices from the moments
+/// `M_i = Σ g_i·e`: since `∂λ̃_0/∂h_1 = h_2 × e` and so on, `∂h_0 = M_1 × h_2 − M_2 × h_1`
+/// and cyclically.
+fn hom_gradients(m: &[[f64; 3]; 3], h: &[Hom; 3]) -> [[f64; 3]; 3] {
+    [0, 1, 2].map(|k| {
+        let (i, j) = ((k + 1) % 3, (k + 2) % 3);
+        let a = cross(&m[i], &h[j]);
+        let b = cross(&m[j], &h[i]);
+        [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+    })
+}
+
+/// `v_world = Rᵀ·v_cam` for each vertex, cast to `T`.
+pub(crate) fn camera_to_world_gradient<T: Real>(v_cam: &[f64], camera: &Camera) -> Vec<T> {
+    let r = &camera.viewmat;
+    v_cam
+        .chunks_exact(3)
+        .flat_map(|g| {
+            [0, 1, 2].map(|c| T::c(r[0][c] as f64 * g[0] + r[1][c] as f64 * g[1] + r[2][c] as f64 * g[2]))
+        })
+        .collect()
+}
+
+fn viewport(camera: &Camera) -> Viewport {
+    Viewport {
+        width: camera.width as usize,
+        height: camera.height as usize,
+        near: camera.near as f64,
+    }
+}
+
+/// Validates the mesh and returns homogeneous screen positions `K·(R·p + t)` in f64.
+pub(crate) fn validate<T: Real>(verts: &[T], faces: &[i32], camera: &Camera) -> Result<Vec<Hom>> {
+    if verts.len() % 3 != 0 {
+        return Err(Error::Shape {
+            arg: "verts",
+            expected: "(V, 3)".into(),
+            got: format!("{} elements", verts.len()),
+        });
+    }
+    check_faces("faces", faces, verts.len() / 3, "V")?;
+    check_finite("verts", verts)?;
+    Ok(camera_homogeneous(verts, camera))
+}
+
+pub(crate) fn camera_homogeneous<T: Real>(verts: &[T], camera: &Camera) -> Vec<Hom> {
+    let m = camera.viewmat.map(|row| row.map(|x| x as f64));
+    let (fx, fy, cx, cy) = (
+        camera.fx as f64,
+        camera.fy as f64,
+        camera.cx as f64,
+        camera.cy as f64,
+    );
+    verts
+        .chunks_exact(3)
+        .map(|p| {
+            let p = [0, 1, 2].map(|k| p[k].to_f64().unwrap_or(f64::NAN));
+            let c = [0, 1, 2].map(|r| m[r][0] * p[0] + m[r][1] * p[1] + m[r][2] * p[2] + m[r][3]);
+            [fx * c[0] + cx * c[2], fy * c[1] + cy * c[2], c[2]]
+        })
+        .collect()
+}
+
+/// Scans every tile: per pixel the nearest covering triangle (equal depth → lower id),
+/// skipping depths beyond `far`. The result is independent of scan order and threads.
+pub(crate) fn scan_tiles<T: Real>(setup: &Setup<T>, vp: &Viewport, far: T) -> RasterImage<T> {
+    let (w, h) = (vp.width, vp.height);
+    let bins = Bins::new(&setup.coverage, vp.num_tiles());
+    let mut tri_id = vec![-1i32; w * h];
+    let mut bary = vec![T::zero(); 2 * w * h];
+    let mut depth = vec![T::infinity(); w * h];
+    tri_id
+        .par_chunks_mut(TILE_ROWS * w)
+        .zip(bary.par_chunks_mut(2 * TILE_ROWS * w))
+        .zip(depth.par_chunks_mut(TILE_ROWS * w))
+        .enumerate()
+        .for_each(|(tile, ((ids, bs), ds))| {
+            let row0 = tile * TILE_ROWS;
+            let row_end = row0 + ids.len() / w;
+            for &ci in bins.tile(tile) {
+                let cov = &setup.coverage[ci as usize];
+                let Some(planes) = &setup.planes[cov.tri as usize] else {
+                    continue;
+                };
+                let tri = cov.tri as i32;
+                let [e0, e1, e2] = cov.edges;
+                for py in cov.y0.max(row0)..=cov.y1.min(row_end - 1) {
+                    let (x0, y) = (cov.x0 as i64, py as i64);
+                    let mut e = [
+                        e0[0] * x0 + e0[1] * y + e0[2],
+                        e1[0] * x0 + e1[1] * y + e1[2],
+                        e2[0] * x0 + e2[1] * y + e2[2],
+                    ];
+                    let row = (py - row0) * w;
+                    for px in cov.x0..=cov.x1 {
+                        if (e[0] | e[1] | e[2]) >= 0 {
+                            let (ex, ey) = planes.offset(px, py);
+                            if let Some(b) = barycentrics(planes.raw(ex, ey)) {
+                                let l = b.lambda;
+                                let z = planes.depth_at(&l);
+                                let i = row + px;
+                                if z <= far && (z < ds[i] || (z == ds[i] && tri < ids[i])) {
+                                    ids[i] = tri;
+                                    ds[i] = z;
+                                    bs[2 * i] = l[1];
+                                    bs[2 * i + 1] = l[2];
+                                }
+                            }
+                        }
+                        e[0] += e0[0];
+                        e[1] += e1[0];
+                        e[2] += e2[0];
+                    }
+                }
+            }
+        });
+    RasterImage {
+        tri_id,
+        bary,
+        depth,
+        width: w,
+        height: h,
+    }
+}

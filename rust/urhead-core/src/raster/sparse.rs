@@ -1,0 +1,223 @@
+//! The texture gradient as a coalesced sparse COO list, built without touching (or
+//! allocating) the dense texture.
+//!
+//! Contract — the same as `torch.nn.Embedding(sparse=True)`, so `torch.optim.SparseAdam`
+//! and a sparse Rust optimiser can consume it directly: `indices (2, K)` int64 rows then
+//! columns, sorted by `(row, col)` and unique; `values (K, C)`. A texel is listed when at
+//! least one sample with a finite UV and a non-zero output gradient gives it a non-zero
+//! bilinear weight ("received gradient"); its value may still sum to zero.
+//!
+//! Deterministic for any thread count: samples are cut into fixed chunks, each emits
+//! `(texel, sample, weight)` entries in sample order, the entries are partitioned into
+//! fixed texel-row buckets (chunk order preserved), each bucket is radix-sorted by texel
+//! with a stable sort, and each texel's value is summed over its entries in sample order.
+
+use rayon::prelude::*;
+
+use super::texture::{bilinear_taps, TexShape, SAMPLE_CHUNK};
+use crate::Real;
+
+/// Target number of texel buckets (fewer for small textures).
+const NUM_BUCKETS: usize = 64;
+
+/// A coalesced sparse texel gradient.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SparseTexels<T> {
+    /// `(2, K)`: texel rows, then texel columns; sorted by (row, col), unique.
+    pub indices: Vec<i64>,
+    /// `(K, C)`
+    pub values: Vec<T>,
+    pub nnz: usize,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Entry<T> {
+    texel: u32,
+    sample: u32,
+    weight: T,
+}
+
+/// Which texels form a bucket: consecutive rows, so buckets are in texel order.
+struct Buckets {
+    texels_per_bucket: usize,
+    count: usize,
+}
+
+impl Buckets {
+    fn new(shape: &TexShape) -> Self {
+        let rows = shape.height.div_ceil(NUM_BUCKETS).max(1);
+        let texels_per_bucket = rows * shape.width;
+        Self {
+            texels_per_bucket,
+            count: (shape.height * shape.width).div_ceil(texels_per_bucket),
+        }
+    }
+
+    #[inline(always)]
+    fn of(&self, texel: u32) -> usize {
+        texel as usize / self.texels_per_bucket
+    }
+}
+
+pub(crate) fn sparse_texel_gradient<T: Real>(shape: &TexShape, uv: &[T], v_out: &[T]) -> SparseTexels<T> {
+    let c = shape.channels;
+    let n = uv.len() / 2;
+    let buckets = Buckets::new(shape);
+
+    // 1. Entries per sample chunk, partitioned by bucket (stable counting sort).
+    let chunks: Vec<(Vec<Entry<T>>, Vec<usize>)> = (0..n.div_ceil(SAMPLE_CHUNK))
+        .into_par_iter()
+        .map(|chunk| {
+            let mut entries = Vec::new();
+            for s in chunk * SAMPLE_CHUNK..((chunk + 1) * SAMPLE_CHUNK).min(n) {
+                if v_out[s * c..(s + 1) * c].iter().all(|g| *g == T::zero()) {
+                    continue;
+                }
+                let Some(t) = bilinear_taps(uv[2 * s], uv[2 * s + 1], shape) else {
+                    continue;
+                };
+                for k in 0..4 {
+                    if t.weight[k] != T::zero() {
+                        entries.push(Entry {
+                            texel: t.texel[k],
+                            sample: s as u32,
+                            weight: t.weight[k],
+                        });
+                    }
+                }
+            }
+            partition(entries, &buckets)
+        })
+        .collect();
+
+    // 2. Per bucket: gather in chunk order, sort by texel (stable), count unique texels.
+    let sorted: Vec<Vec<Entry<T>>> = (0..buckets.count)
+        .into_par_iter()
+        .map(|b| {
+            let mut entries = Vec::with_capacity(chunks.iter().map(|(_, o)| o[b + 1] - o[b]).sum());
+            for (e, o) in &chunks {
+                entries.extend_from_slice(&e[o[b]..o[b + 1]]);
+            }
+            radix_sort_by_texel(
+                entries,
+                (b * buckets.texels_per_bucket) as u32,
+                buckets.texels_per_bucket,
+            )
+        })
+        .collect();
+    drop(chunks);
+    let unique: Vec<usize> = sorted.iter().map(|e| count_unique(e)).collect();
+    let nnz: usize = unique.iter().sum();
+
+    // 3. Sum each texel's entries in sample order into disjoint slices of the output.
+    let mut indices = vec![0i64; 2 * nnz];
+    let mut values = vec![T::zero(); nnz * c];
+    let (rows, cols) = indices.split_at_mut(nnz);
+    let mut parts = Vec::with_capacity(buckets.count);
+    let (mut rows, mut cols, mut vals) = (rows, cols, values.as_mut_slice());
+    for &k in &unique {
+        let (r, rest_r) = rows.split_at_mut(k);
+        let (cl, rest_c) = cols.split_at_mut(k);
+        let (v, rest_v) = vals.split_at_mut(k * c);
+        parts.push((r, cl, v));
+        (rows, cols, vals) = (rest_r, rest_c, rest_v);
+    }
+    parts
+        .into_par_iter()
+        .zip(sorted.par_iter())
+        .for_each(|((rows, cols, vals), entries)| {
+            let mut out = 0usize;
+            let mut i = 0usize;
+            while i < entries.len() {
+                let texel = entries[i].texel;
+                rows[out] = (texel as usize / shape.width) as i64;
+                cols[out] = (texel as usize % shape.width) as i64;
+                let dst = &mut vals[out * c..(out + 1) * c];
+                while i < entries.len() && entries[i].texel == texel {
+                    let e = &entries[i];
+                    let g = &v_out[e.sample as usize * c..(e.sample as usize + 1) * c];
+                    for (d, gk) in dst.iter_mut().zip(g) {
+                        *d += e.weight * *gk;
+                    }
+                    i += 1;
+                }
+                out += 1;
+            }
+        });
+    SparseTexels { indices, values, nnz }
+}
+
+/// Stable counting sort of entries by bucket; returns them with bucket offsets.
+fn partition<T: Copy>(entries: Vec<Entry<T>>, buckets: &Buckets) -> (Vec<Entry<T>>, Vec<usize>) {
+    let mut offsets = vec![0usize; buckets.count + 1];
+    for e in &entries {
+        offsets[buckets.of(e.texel) + 1] += 1;
+    }
+    for b in 0..buckets.count {
+        offsets[b + 1] += offsets[b];
+    }
+    let mut fill = offsets.clone();
+    let mut out = entries.clone();
+    for e in entries {
+        let b = buckets.of(e.texel);
+        out[fill[b]] = e;
+        fill[b] += 1;
+    }
+    (out, offsets)
+}
+
+/// Stable LSD radix sort (8 bits a pass) by `texel − base`, which is below `span`.
+fn radix_sort_by_texel<T: Copy>(mut entries: Vec<Entry<T>>, base: u32, span: usize) -> Vec<Entry<T>> {
+    let bits = usize::BITS - (span.max(2) - 1).leading_zeros();
+    let mut scratch = entries.clone();
+    let mut shift = 0;
+    while shift < bits {
+        let mut offsets = [0usize; 257];
+        for e in &entries {
+            offsets[(((e.texel - base) >> shift) & 0xff) as usize + 1] += 1;
+        }
+        if offsets[1..].contains(&entries.len()) {
+            shift += 8; // every key shares this digit: the pass would not move anything
+            continue;
+        }
+        for d in 0..256 {
+            offsets[d + 1] += offsets[d];
+        }
+        for e in &entries {
+            let d = (((e.texel - base) >> shift) & 0xff) as usize;
+            scratch[offsets[d]] = *e;
+            offsets[d] += 1;
+        }
+        std::mem::swap(&mut entries, &mut scratch);
+        shift += 8;
+    }
+    entries
+}
+
+fn count_unique<T>(sorted: &[Entry<T>]) -> usize {
+    if sorted.is_empty() {
+        0
+    } else {
+        1 + sorted.windows(2).filter(|w| w[0].texel != w[1].texel).count()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn radix_sort_is_stable_and_sorted() {
+        let entries: Vec<Entry<f32>> = (0..1000u32)
+            .map(|i| Entry {
+                texel: 500 + (i * 7919) % 300,
+                sample: i,
+                weight: 1.0,
+            })
+            .collect();
+        let sorted = radix_sort_by_texel(entries, 500, 300);
+        for w in sorted.windows(2) {
+            assert!(w[0].texel < w[1].texel || (w[0].texel == w[1].texel && w[0].sample < w[1].sample));
+        }
+    }
+}
