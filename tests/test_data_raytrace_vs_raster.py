@@ -32,7 +32,7 @@ def head_scene():
 
 
 def test_visibility_barycentrics_and_depth_agree(head_scene):
-    verts, faces, colors, camera = head_scene
+    verts, faces, _, camera = head_scene
     traced = raytrace(verts, faces, camera, samples_per_side=1, shadows=False)
     raster = rasterize(torch.from_numpy(verts), torch.from_numpy(faces), camera)
     tri = raster.tri_id.numpy()

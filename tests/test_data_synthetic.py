@@ -14,7 +14,9 @@ from urhead.data import load_subject
 from urhead.data.synthetic import SynthConfig, synthesize
 from urhead.head import load_head
 
-TINY = SynthConfig(frames=4, resolution=48, seed=3, difficulty="easy", samples_per_side=1, edge_samples_per_side=2)
+TINY = SynthConfig(
+    frames=4, resolution=48, seed=3, difficulty="easy", samples_per_side=1, edge_samples_per_side=2
+)
 
 
 @pytest.fixture(scope="module")
@@ -78,7 +80,9 @@ def test_ground_truth_vertices_project_into_the_mask(tiny_subject):
 def test_same_seed_same_bytes_other_seed_other_subject(tiny_subject, tmp_path):
     again = synthesize(tmp_path / "again", TINY, progress=False)
     assert _files(again) == _files(tiny_subject)
-    other = synthesize(tmp_path / "other", SynthConfig(**{**TINY.__dict__, "seed": 4}), progress=False)
+    other = synthesize(
+        tmp_path / "other", SynthConfig(**{**TINY.__dict__, "seed": 4}), progress=False
+    )
     a = load_subject(tiny_subject).train[0].image
     b = load_subject(other).train[0].image
     assert not torch.equal(a, b)
