@@ -8,10 +8,12 @@ import json
 import numpy as np
 import pytest
 import torch
+from PIL import Image
 
 from urhead.cli import main
 from urhead.data import load_subject
-from urhead.data.synthetic import SynthConfig, synthesize
+from urhead.data.reader import Subject
+from urhead.data.synthetic import SynthConfig, contact_sheet, synthesize
 from urhead.head import load_head
 
 TINY = SynthConfig(
@@ -108,3 +110,15 @@ def test_refuses_to_replace_a_folder_that_is_not_a_subject(tmp_path):
         synthesize(tmp_path / "precious", TINY, progress=False)
     with pytest.raises(ValueError, match="difficulty must be one of"):
         SynthConfig(difficulty="extreme")
+
+
+def test_contact_sheet_decodes_only_the_frames_it_shows(tiny_subject, tmp_path, monkeypatch):
+    decoded = []
+    decode = Subject._decode
+    monkeypatch.setattr(Subject, "_decode", lambda self, r: decoded.append(r) or decode(self, r))
+    path = contact_sheet(tiny_subject, tmp_path / "sheet.png", columns=2, rows=1, tile=32)
+    assert sorted(r.timestep for r in decoded) == [0, 3]
+    sheet = np.asarray(Image.open(path))
+    assert sheet.shape == (32, 64, 3)
+    # Each tile shows the head: not all background.
+    assert (sheet[:, :32] < 250).any() and (sheet[:, 32:] < 250).any()

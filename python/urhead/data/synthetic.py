@@ -299,14 +299,21 @@ def contact_sheet(
 
     from urhead.data import load_subject
 
-    subject = load_subject(root)
-    frames = [*subject.train, *subject.test]
-    frames.sort(key=lambda f: f.timestep)
+    subject = load_subject(root, cache_size=1)
+    # Index the frames without decoding them and read only the picked ones, one at a time
+    # (every frame of a 600-frame subject decoded at once would hold ~5 GB).
+    frames = [
+        (r.timestep, split, i)
+        for split in (subject.train, subject.test)
+        for i, r in enumerate(split.records)
+    ]
+    frames.sort(key=lambda f: f[0])
     picks = np.linspace(0, len(frames) - 1, columns * rows).round().astype(int)
     sheet = Image.new("RGB", (columns * tile, rows * tile), "white")
     draw = ImageDraw.Draw(sheet)
     for i, k in enumerate(picks):
-        frame = frames[k]
+        _, split, index = frames[k]
+        frame = split[index]
         image = Image.fromarray((frame.image.numpy() * 255).round().astype(np.uint8)).resize(
             (tile, tile), Image.LANCZOS
         )
