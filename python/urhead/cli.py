@@ -11,7 +11,7 @@ import argparse
 import importlib
 import sys
 
-COMMAND_MODULES = ("urhead.head.convert",)
+COMMAND_MODULES = ("urhead.head.convert", "urhead.data.synthetic")
 
 
 def build_parser() -> argparse.ArgumentParser:

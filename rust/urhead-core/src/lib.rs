@@ -13,6 +13,7 @@ pub mod mat3;
 pub mod memory;
 pub mod parallel;
 pub mod raster;
+pub mod raytrace;
 pub mod real;
 pub mod splat;
 pub mod testing;

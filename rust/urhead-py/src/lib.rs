@@ -10,6 +10,7 @@ mod lbs;
 mod pool;
 mod raster;
 mod splat;
+mod raytrace;
 
 use pyo3::prelude::*;
 
@@ -40,5 +41,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(splat::splat_project_backward_f64, m)?)?;
     m.add_function(wrap_pyfunction!(splat::splat_rasterize_forward_f64, m)?)?;
     m.add_function(wrap_pyfunction!(splat::splat_rasterize_backward_f64, m)?)?;
+    m.add_function(wrap_pyfunction!(raytrace::raytrace_render, m)?)?;
     Ok(())
 }

@@ -1,0 +1,79 @@
+"""PNG reading and writing for datasets: a cheap header check used at load time, and
+decoding that names the file on any failure."""
+
+from __future__ import annotations
+
+import struct
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from urhead.data.layout import DatasetError, MissingFileError
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}  # PNG colour type → channels after decoding
+
+
+def png_size(path: Path) -> tuple[int, int]:
+    """(width, height) from the PNG header (33 bytes read), or a :class:`DatasetError`."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(33)
+    except FileNotFoundError:
+        raise MissingFileError(path, "file not found") from None
+    except OSError as e:
+        raise DatasetError(path, f"cannot be read ({e})") from None
+    if len(head) < 33 or head[:8] != _PNG_SIGNATURE or head[12:16] != b"IHDR":
+        raise DatasetError(path, "not a PNG file (bad signature or header)")
+    width, height = struct.unpack(">II", head[16:24])
+    if width == 0 or height == 0:
+        raise DatasetError(path, f"PNG header gives an empty image {width}×{height}")
+    return width, height
+
+
+def read_png(path: Path) -> np.ndarray:
+    """Decoded PNG as (H, W) or (H, W, C) with RGB(A) channel order, float32 in [0, 1]."""
+    if not path.is_file():
+        raise MissingFileError(path, "file not found")
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None:
+        raise DatasetError(path, "could not be decoded as an image (corrupt or truncated?)")
+    scale = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(raw.dtype)
+    if scale is None:
+        raise DatasetError(path, f"unsupported pixel type {raw.dtype}")
+    if raw.ndim == 3 and raw.shape[2] == 3:
+        raw = raw[..., ::-1]
+    elif raw.ndim == 3 and raw.shape[2] == 4:
+        raw = raw[..., [2, 1, 0, 3]]
+    return np.ascontiguousarray(raw, dtype=np.float32) / np.float32(scale)
+
+
+def read_png_uint8(path: Path) -> np.ndarray:
+    """Decoded 8-bit PNG, RGB channel order, as stored (for encoded normal maps)."""
+    if not path.is_file():
+        raise MissingFileError(path, "file not found")
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None:
+        raise DatasetError(path, "could not be decoded as an image (corrupt or truncated?)")
+    if raw.dtype != np.uint8:
+        raise DatasetError(path, f"must be an 8-bit PNG, got {raw.dtype}")
+    if raw.ndim == 3 and raw.shape[2] >= 3:
+        raw = raw[..., 2::-1]
+    return np.ascontiguousarray(raw)
+
+
+def write_png(path: Path, pixels: np.ndarray) -> None:
+    """Write (H, W) or (H, W, 3) uint8 pixels (RGB order) as a PNG."""
+    if pixels.dtype != np.uint8:
+        raise TypeError(f"pixels for {path} must be uint8, got {pixels.dtype}")
+    if pixels.ndim == 3:
+        pixels = pixels[..., ::-1]
+    # Compression level 1: several times faster than the default at ~10 % larger files.
+    if not cv2.imwrite(str(path), np.ascontiguousarray(pixels), [cv2.IMWRITE_PNG_COMPRESSION, 1]):
+        raise OSError(f"{path}: could not be written")
+
+
+def to_uint8(values: np.ndarray) -> np.ndarray:
+    """Float values in [0, 1] → uint8 with rounding (values outside are clipped)."""
+    return np.clip(np.rint(np.asarray(values, np.float32) * 255.0), 0, 255).astype(np.uint8)

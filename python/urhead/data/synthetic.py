@@ -1,0 +1,400 @@
+"""Synthetic ground-truth subjects: the built-in procedural head, made richer than the model
+can represent (wrinkles as true displacement of a Loop-subdivided surface, albedo detail
+finer than any UV map, hair and eyelashes off the FLAME surface, a specular light),
+performing a talking, expressive sequence with head turns up to ±35° yaw, ray-traced by
+:mod:`urhead.raytrace` and written in the VHAP / GaussianAvatars layout with noisy
+("tracked") FLAME parameters and ground-truth normal maps.
+
+Also written: ``head.npz`` (the head model the FLAME parameters refer to),
+``synthetic_ground_truth.npz`` (the exact parameters), ``synthetic.json`` (settings, the
+cache key). ``urhead synth --out DIR`` reuses ``DIR`` when its cache key matches.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from urhead.camera import Camera
+from urhead.data.subdivision import vertex_normals
+from urhead.data.synth_motion import FPS, performance, tracking_noise
+from urhead.data.synth_scene import MATERIALS, Strands, SubjectLook, build_look
+from urhead.data.writer import SubjectWriter
+from urhead.raytrace import Light, raytrace
+
+GENERATOR_VERSION = 1
+"""Bump when the generator's output changes: it is part of the cache key."""
+
+HEAD_SEED = 0
+"""The subjects use the default built-in head (``procedural_head(0)``), as the fit does."""
+
+DIFFICULTIES = {
+    # max yaw, expression scale, tracking noise, wrinkle scale, strands, subdivision levels
+    "easy": dict(
+        max_yaw_deg=15.0, expression_scale=0.6, noise=0.5, wrinkles=0.6, strands=800, levels=1
+    ),
+    "default": dict(
+        max_yaw_deg=35.0, expression_scale=1.0, noise=1.0, wrinkles=1.0, strands=2500, levels=2
+    ),
+    "hard": dict(
+        max_yaw_deg=35.0, expression_scale=1.3, noise=2.0, wrinkles=1.4, strands=5000, levels=2
+    ),
+}
+
+LIGHT = Light(
+    direction=(0.45, 0.55, 0.7),
+    color=(1.05, 1.0, 0.95),
+    angular_radius=0.06,
+    ambient_up=(0.3, 0.31, 0.34),
+    ambient_down=(0.12, 0.1, 0.09),
+)
+BACKGROUND = (1.0, 1.0, 1.0)
+
+
+@dataclass(frozen=True)
+class SynthConfig:
+    """What a synthetic subject is made from; every field enters the cache key."""
+
+    frames: int = 600
+    resolution: int = 512
+    seed: int = 0
+    difficulty: str = "default"
+    samples_per_side: int = 2
+    edge_samples_per_side: int = 3
+    test_last: int | None = None
+
+    def __post_init__(self):
+        if self.difficulty not in DIFFICULTIES:
+            raise ValueError(
+                f"difficulty must be one of {sorted(DIFFICULTIES)}, got {self.difficulty!r}"
+            )
+        if self.frames < 2:
+            raise ValueError(f"frames must be >= 2, got {self.frames}")
+        if not 16 <= self.resolution <= 4096:
+            raise ValueError(f"resolution must be in [16, 4096], got {self.resolution}")
+
+    def cache_key(self) -> str:
+        blob = json.dumps({"generator_version": GENERATOR_VERSION, **asdict(self)}, sort_keys=True)
+        return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def subject_camera(resolution: int) -> Camera:
+    """The fixed camera: 0.75 m in front of the face, a 26° vertical field of view and a
+    principal point a little off centre (as a calibrated camera has)."""
+    cam = Camera.look_at(
+        (0.0, 0.0, 0.75),
+        (0.0, -0.012, 0.0),
+        fov_y_degrees=26.0,
+        width=resolution,
+        height=resolution,
+    )
+    k = cam.K.clone()
+    k[0, 2] += 0.006 * resolution
+    k[1, 2] -= 0.004 * resolution
+    return Camera(k, cam.viewmat, resolution, resolution)
+
+
+def synthesize(
+    out: str | Path,
+    config: SynthConfig = SynthConfig(),
+    *,
+    progress: bool = True,
+    force: bool = False,
+) -> Path:
+    """Make (or reuse) the synthetic subject ``config`` at ``out``; returns ``out``.
+
+    A folder holding a subject with the same cache key is reused as it is. Any other
+    existing folder is replaced only with ``force`` or when it is an older synthetic
+    subject (it has ``synthetic.json``)."""
+    from tqdm import tqdm
+
+    from urhead.head import procedural_head, save_head
+    from urhead.head.procedural import EXPRESSION_NAMES
+
+    out = Path(out)
+    key = config.cache_key()
+    meta_path = out / "synthetic.json"
+    if meta_path.is_file():
+        try:
+            if json.loads(meta_path.read_text()).get("cache_key") == key:
+                return out
+        except (OSError, json.JSONDecodeError):
+            pass
+    if out.exists() and not (force or meta_path.is_file()):
+        raise FileExistsError(
+            f"{out}: exists and is not a synthetic subject (pass force=True / --force)"
+        )
+
+    preset = DIFFICULTIES[config.difficulty]
+    rng = np.random.default_rng(config.seed)
+    head = procedural_head(HEAD_SEED)
+    look = build_look(
+        head,
+        rng,
+        levels=preset["levels"],
+        hair_strands=preset["strands"],
+        wrinkle_scale=preset["wrinkles"],
+    )
+    perf = performance(
+        rng,
+        config.frames,
+        tuple(EXPRESSION_NAMES),
+        head.num_expr,
+        max_yaw_deg=preset["max_yaw_deg"],
+        expression_scale=preset["expression_scale"],
+    )
+    shape_n, expr_n, pose_n, transl_n = tracking_noise(rng, perf, look.shape, preset["noise"])
+    camera = subject_camera(config.resolution)
+    tables = head.lbs_tables(torch.float32)
+    renderer = _FrameRenderer(look, camera, config)
+
+    with SubjectWriter(out, camera, overwrite=True, test_last=config.test_last) as writer:
+        save_head(head, writer.staging / "head.npz")
+        np.savez(
+            writer.staging / "synthetic_ground_truth.npz",
+            shape=look.shape,
+            expr=perf.expr,
+            pose=perf.pose,
+            transl=perf.transl,
+        )
+        frames = tqdm(range(config.frames), desc="urhead synth", unit="frame", disable=not progress)
+        for t in frames:
+            betas = torch.from_numpy(np.concatenate([look.shape, perf.expr[t]])[None])
+            skinned = _lbs(tables, betas, perf.pose[t], perf.transl[t])
+            act = {k: float(v[t]) for k, v in perf.activation.items()}
+            image, mask, normals = renderer.render(skinned, act, t)
+            flame = {
+                "translation": transl_n[t][None],
+                "rotation": pose_n[t, 0:3][None],
+                "neck_pose": pose_n[t, 3:6][None],
+                "jaw_pose": pose_n[t, 6:9][None],
+                "eyes_pose": pose_n[t, 9:15][None],
+                "shape": shape_n,
+                "expr": expr_n[t][None],
+            }
+            writer.add_frame(t, image, mask, flame, normals=normals)
+        meta = {
+            "cache_key": key,
+            "generator_version": GENERATOR_VERSION,
+            "config": asdict(config),
+            "difficulty": preset,
+            "fps": FPS,
+            "head": f"procedural_head({HEAD_SEED}); also head.npz",
+            "background": BACKGROUND,
+            "light": asdict(LIGHT),
+            "triangles": renderer.last_triangle_count,
+            "normals": "normals/*.png: OpenCV camera-space unit normals, see urhead.data.layout",
+        }
+        (writer.staging / "synthetic.json").write_text(json.dumps(meta, indent=1))
+    return out
+
+
+def _lbs(tables, betas, pose, transl):
+    from urhead.ops import lbs
+
+    out = lbs(
+        betas.float().contiguous(),
+        torch.from_numpy(pose[None]).contiguous(),
+        transl=torch.from_numpy(transl[None]).contiguous(),
+        **tables,
+    )
+    return out.verts[0].numpy(), out.rotations[0].numpy()
+
+
+class _FrameRenderer:
+    """Per frame: subdivide and displace the skinned head, attach strands, ray-trace."""
+
+    def __init__(self, look: SubjectLook, camera: Camera, config: SynthConfig):
+        self.look = look
+        self.camera = camera
+        self.config = config
+        self.eye = camera.center.double().numpy()
+        self.last_triangle_count = 0
+
+    def render(self, skinned, activation: dict, t: int):
+        verts, rotations = skinned
+        look = self.look
+        coarse = verts.astype(np.float64)
+        fine = look.S @ coarse
+        n0 = vertex_normals(fine, look.faces, look.normal_op)
+        disp = look.static_offset.astype(np.float64).copy()
+        for name, field in look.wrinkle_fields.items():
+            disp += activation.get(name, 0.0) * field
+        fine = fine + disp[:, None] * n0
+        normals = vertex_normals(fine, look.faces, look.normal_op)
+        parts = [(fine, look.faces, normals, look.colors, look.solid, look.face_material)]
+        for strands in look.strands:
+            if len(strands):
+                parts.append(self._ribbons(strands, coarse, rotations))
+        offset, pieces = 0, []
+        for v, f, n, c, s, m in parts:
+            pieces.append((v, f + offset, n, c, s, m))
+            offset += len(v)
+        v, f, n, c, s, m = (np.concatenate(x) for x in zip(*pieces, strict=True))
+        self.last_triangle_count = len(f)
+        out = raytrace(
+            v,
+            f,
+            self.camera,
+            normals=n,
+            colors=c,
+            solid=s,
+            face_material=m,
+            materials=MATERIALS,
+            decals=look.decals,
+            light=LIGHT,
+            samples_per_side=self.config.samples_per_side,
+            edge_samples_per_side=self.config.edge_samples_per_side,
+            background=BACKGROUND,
+            seed=self.config.seed * 100003 + t,
+        )
+        normals_out = np.where(out.alpha[..., None] > 0, out.normal, 0.0)
+        return np.clip(out.rgb, 0, 1), out.alpha, normals_out
+
+    def _ribbons(self, strands: Strands, coarse, rotations):
+        """Camera-facing ribbons along each strand; the normals at the two edges lean
+        sideways so the ribbon shades like a cylinder."""
+        anchor = strands.anchor
+        rot = rotations[anchor].astype(np.float64)  # (N, 3, 3)
+        pts = coarse[anchor][:, None] + np.einsum(
+            "nij,nkj->nki", rot, strands.offsets.astype(np.float64)
+        )
+        N, K, _ = pts.shape
+        tangent = np.gradient(pts, axis=1)
+        tangent /= np.maximum(np.linalg.norm(tangent, axis=2, keepdims=True), 1e-12)
+        to_cam = self.eye - pts
+        to_cam /= np.linalg.norm(to_cam, axis=2, keepdims=True)
+        side = np.cross(tangent, to_cam)
+        side /= np.maximum(np.linalg.norm(side, axis=2, keepdims=True), 1e-12)
+        taper = np.linspace(1.0, 0.35, K)[None, :, None]
+        half = 0.5 * strands.width[:, None, None] * taper
+        verts = np.stack([pts - side * half, pts + side * half], 2).reshape(-1, 3)
+        normals = np.stack([-0.75 * side + 0.66 * to_cam, 0.75 * side + 0.66 * to_cam], 2).reshape(
+            -1, 3
+        )
+        base = (np.arange(N)[:, None] * K + np.arange(K - 1)[None]) * 2  # (N, K-1)
+        a, b = base, base + 1
+        a2, b2 = base + 2, base + 3
+        faces = np.concatenate([np.stack([a, b, a2], -1), np.stack([b, b2, a2], -1)], 1).reshape(
+            -1, 3
+        )
+        colors = np.repeat(strands.color, 2 * K, axis=0)
+        rest_pts = (self.look.rest[anchor][:, None] + strands.offsets).astype(np.float64)
+        solid = np.repeat(rest_pts, 2, axis=1).reshape(-1, 3)
+        material = np.full(len(faces), strands.material, np.int32)
+        return verts, faces.astype(np.int32), normals, colors, solid, material
+
+
+def contact_sheet(
+    root: str | Path, path: str | Path, columns: int = 6, rows: int = 3, tile: int = 256
+) -> Path:
+    """A grid of evenly spaced frames of the subject at ``root`` (timestep in the corner)."""
+    from PIL import Image, ImageDraw
+
+    from urhead.data import load_subject
+
+    subject = load_subject(root, cache_size=1)
+    # Index the frames without decoding them and read only the picked ones, one at a time
+    # (every frame of a 600-frame subject decoded at once would hold ~5 GB).
+    frames = [
+        (r.timestep, split, i)
+        for split in (subject.train, subject.test)
+        for i, r in enumerate(split.records)
+    ]
+    frames.sort(key=lambda f: f[0])
+    picks = np.linspace(0, len(frames) - 1, columns * rows).round().astype(int)
+    sheet = Image.new("RGB", (columns * tile, rows * tile), "white")
+    draw = ImageDraw.Draw(sheet)
+    for i, k in enumerate(picks):
+        _, split, index = frames[k]
+        frame = split[index]
+        image = Image.fromarray((frame.image.numpy() * 255).round().astype(np.uint8)).resize(
+            (tile, tile), Image.LANCZOS
+        )
+        x, y = (i % columns) * tile, (i // columns) * tile
+        sheet.paste(image, (x, y))
+        draw.text((x + 6, y + 4), f"t={frame.timestep}", fill=(60, 60, 60))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    sheet.save(path)
+    return path
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "synth",
+        help="make a synthetic ground-truth subject (ray-traced) in the VHAP layout",
+        description="Render a synthetic subject from the built-in head with the ray tracer "
+        "and write it in the VHAP / GaussianAvatars layout (reused when already there).",
+    )
+    defaults = SynthConfig()
+    p.add_argument("--out", required=True, help="subject folder to write")
+    p.add_argument("--frames", type=int, default=defaults.frames, help="number of frames (25 fps)")
+    p.add_argument(
+        "--resolution", type=int, default=defaults.resolution, help="image side in pixels"
+    )
+    p.add_argument(
+        "--seed", type=int, default=defaults.seed, help="seed of identity, look and performance"
+    )
+    p.add_argument("--difficulty", choices=sorted(DIFFICULTIES), default=defaults.difficulty)
+    p.add_argument(
+        "--samples", type=int, default=defaults.samples_per_side, help="samples per pixel side"
+    )
+    p.add_argument(
+        "--edge-samples",
+        type=int,
+        default=defaults.edge_samples_per_side,
+        help="samples per pixel side at silhouettes, hair and occlusion edges",
+    )
+    p.add_argument(
+        "--test-last", type=int, default=None, help="hold out the last N frames (default 30 %%)"
+    )
+    p.add_argument("--contact-sheet", help="also write a grid of frames to this PNG")
+    p.add_argument(
+        "--force", action="store_true", help="replace an existing folder that is not a subject"
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    config = SynthConfig(
+        frames=args.frames,
+        resolution=args.resolution,
+        seed=args.seed,
+        difficulty=args.difficulty,
+        samples_per_side=args.samples,
+        edge_samples_per_side=args.edge_samples,
+        test_last=args.test_last,
+    )
+    before = _key_at(Path(args.out))
+    out = synthesize(args.out, config, progress=not args.quiet, force=args.force)
+    state = "reused (cached)" if before == config.cache_key() else "wrote"
+    size = f"{config.resolution}×{config.resolution}"
+    print(f"{state} {out}: {config.frames} frames at {size}, difficulty {config.difficulty}")
+    if args.contact_sheet:
+        print(f"wrote {contact_sheet(out, args.contact_sheet)}")
+    return 0
+
+
+def _key_at(out: Path):
+    try:
+        return json.loads((out / "synthetic.json").read_text()).get("cache_key")
+    except (OSError, json.JSONDecodeError):
+        return None
+
+
+__all__ = [
+    "DIFFICULTIES",
+    "GENERATOR_VERSION",
+    "SynthConfig",
+    "contact_sheet",
+    "subject_camera",
+    "synthesize",
+]

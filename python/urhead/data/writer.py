@@ -1,0 +1,233 @@
+"""Writing a subject in the VHAP / GaussianAvatars layout, atomically: everything goes into
+a hidden temporary folder beside the target, which is renamed into place only when the
+subject is complete, so a reader never sees a half-written subject."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import uuid
+from pathlib import Path
+
+import numpy as np
+
+from urhead.camera import Camera
+from urhead.data.images import to_uint8, write_png
+from urhead.data.layout import (
+    CANONICAL_FLAME,
+    FLAME_DIR,
+    IMAGES_DIR,
+    MASKS_DIR,
+    NORMALS_DIR,
+    SPLIT_FILES,
+    TRANSFORMS,
+    canonical_flame_params,
+    check_flame_params,
+    encode_normals,
+    flame_file,
+    frame_stem,
+)
+
+
+def opengl_c2w(camera: Camera) -> np.ndarray:
+    """(4, 4) camera-to-world in OpenGL axes (x right, y up, z back) of an OpenCV camera:
+    the inverse of :meth:`urhead.Camera.from_opengl_c2w`."""
+    c2w = np.linalg.inv(camera.viewmat.double().numpy())
+    c2w[:3, 1:3] *= -1
+    c2w[3] = (0.0, 0.0, 0.0, 1.0)
+    return c2w
+
+
+class SubjectWriter:
+    """Writes frames of one fixed camera, then the transforms files on :meth:`finish`.
+
+    Use as a context manager: leaving the block normally finishes the subject, an
+    exception discards everything written so far::
+
+        with SubjectWriter(out, camera) as w:
+            for t in range(n):
+                w.add_frame(t, image, mask, flame, normals=normals)
+
+    Args:
+        root: the subject folder to create.
+        camera: the fixed camera (an :class:`urhead.Camera`).
+        overwrite: replace an existing ``root`` (only once the new subject is complete).
+        test_last: timesteps held out as the test split (and written as ``val`` too);
+            None: VHAP's split, the last 30 % of timesteps.
+    """
+
+    def __init__(
+        self,
+        root: str | os.PathLike,
+        camera: Camera,
+        *,
+        overwrite: bool = False,
+        test_last: int | None = None,
+    ):
+        self.root = Path(root)
+        if self.root.exists() and not overwrite:
+            raise FileExistsError(f"{self.root}: already exists (pass overwrite=True to replace)")
+        if test_last is not None and (not isinstance(test_last, int) or test_last < 1):
+            raise ValueError(f"test_last must be a positive int or None, got {test_last!r}")
+        self.camera = camera
+        self.overwrite = overwrite
+        self.test_last = test_last
+        self.root.parent.mkdir(parents=True, exist_ok=True)
+        self._tmp = self.root.parent / f".{self.root.name}.partial-{uuid.uuid4().hex[:8]}"
+        for sub in (IMAGES_DIR, MASKS_DIR, FLAME_DIR):
+            (self._tmp / sub).mkdir(parents=True)
+        self._frames: list[dict] = []
+        self._flame_shapes: dict | None = None
+        self._with_normals: bool | None = None
+        self._done = False
+
+    @property
+    def staging(self) -> Path:
+        """The temporary folder being filled: extra files written here move into place
+        with the subject."""
+        return self._tmp
+
+    def __enter__(self) -> SubjectWriter:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None and not self._done:
+            self.finish()
+        else:
+            self.abort()
+
+    def add_frame(
+        self,
+        timestep: int,
+        image: np.ndarray,
+        mask: np.ndarray,
+        flame: dict,
+        normals: np.ndarray | None = None,
+    ) -> None:
+        """Write one timestep.
+
+        Args:
+            timestep: its index; timesteps must be added in increasing order.
+            image: (H, W, 3) RGB in [0, 1] (float) or uint8, already composited on the
+                background.
+            mask: (H, W) foreground alpha in [0, 1] (float) or uint8.
+            flame: FLAME parameters with the keys and shapes of FORMATS.md.
+            normals: (H, W, 3) unit normals in OpenCV camera axes, zero where undefined;
+                give them for every frame or for none.
+        """
+        if self._done:
+            raise RuntimeError("the subject is already finished")
+        h, w = self.camera.height, self.camera.width
+        if self._frames and timestep <= self._frames[-1]["timestep_index"]:
+            raise ValueError(f"timestep {timestep} must exceed the previous one")
+        image, mask = np.asarray(image), np.asarray(mask)
+        if image.shape != (h, w, 3):
+            raise ValueError(f"image must be ({h}, {w}, 3), got {image.shape}")
+        if mask.shape != (h, w):
+            raise ValueError(f"mask must be ({h}, {w}), got {mask.shape}")
+        if self._frames and (normals is not None) != self._with_normals:
+            raise ValueError("normals must be given for every frame or for none")
+        self._with_normals = normals is not None
+        flame = dict(flame)
+        check_flame_params(flame, flame_file(timestep))
+        shapes = {k: v.shape for k, v in flame.items()}
+        if self._flame_shapes is None:
+            self._flame_shapes = shapes
+        elif shapes != self._flame_shapes:
+            raise ValueError(f"flame shapes {shapes} differ from the first frame's")
+
+        stem = frame_stem(timestep, 0)
+        write_png(self._tmp / IMAGES_DIR / f"{stem}.png", _as_uint8(image))
+        write_png(self._tmp / MASKS_DIR / f"{stem}.png", _as_uint8(mask))
+        if normals is not None:
+            normals = np.asarray(normals, np.float32)
+            if normals.shape != (h, w, 3):
+                raise ValueError(f"normals must be ({h}, {w}, 3), got {normals.shape}")
+            (self._tmp / NORMALS_DIR).mkdir(exist_ok=True)
+            write_png(self._tmp / NORMALS_DIR / f"{stem}.png", encode_normals(normals))
+        np.savez(self._tmp / flame_file(timestep), **flame)
+        self._frames.append(self._frame_entry(timestep, stem))
+
+    def finish(self) -> Path:
+        """Write the transforms files and the canonical parameters, then move the subject
+        into place. Returns the subject folder."""
+        if self._done:
+            return self.root
+        if not self._frames:
+            self.abort()
+            raise ValueError("a subject needs at least one frame")
+        shapes = self._flame_shapes
+        static = shapes.get("static_offset")
+        canonical = canonical_flame_params(
+            shapes["shape"][0], shapes["expr"][1], None if static is None else static[1]
+        )
+        np.savez(self._tmp / CANONICAL_FLAME, **canonical)
+        num = len(self._frames)
+        num_test = self.test_last if self.test_last is not None else max(1, round(0.3 * num))
+        if num_test >= num:
+            self.abort()
+            raise ValueError(f"test_last={num_test} leaves no training frames out of {num}")
+        splits = {
+            TRANSFORMS: self._frames,
+            SPLIT_FILES["train"]: self._frames[: num - num_test],
+            SPLIT_FILES["val"]: self._frames[num - num_test :],
+            SPLIT_FILES["test"]: self._frames[num - num_test :],
+        }
+        for name, frames in splits.items():
+            (self._tmp / name).write_text(json.dumps(self._transforms(frames), indent=1))
+        old = None
+        if self.root.exists():
+            old = self.root.parent / f".{self.root.name}.old-{uuid.uuid4().hex[:8]}"
+            os.replace(self.root, old)
+        os.replace(self._tmp, self.root)
+        if old is not None:
+            shutil.rmtree(old)
+        self._done = True
+        return self.root
+
+    def abort(self) -> None:
+        """Discard everything written (the target folder is left untouched)."""
+        shutil.rmtree(self._tmp, ignore_errors=True)
+        self._done = True
+
+    def _intrinsics(self) -> dict:
+        c = self.camera
+        return {
+            "cx": c.cx,
+            "cy": c.cy,
+            "fl_x": c.fx,
+            "fl_y": c.fy,
+            "h": c.height,
+            "w": c.width,
+            "camera_angle_x": 2 * math.atan(c.width / (2 * c.fx)),
+            "camera_angle_y": 2 * math.atan(c.height / (2 * c.fy)),
+        }
+
+    def _frame_entry(self, timestep: int, stem: str) -> dict:
+        entry = {
+            "timestep_index": timestep,
+            "timestep_index_original": timestep,
+            "timestep_id": f"frame_{timestep:05d}",
+            "camera_index": 0,
+            "camera_id": "00",
+            **self._intrinsics(),
+            "transform_matrix": opengl_c2w(self.camera).tolist(),
+            "file_path": f"{IMAGES_DIR}/{stem}.png",
+            "fg_mask_path": f"{MASKS_DIR}/{stem}.png",
+            "flame_param_path": flame_file(timestep),
+        }
+        return entry
+
+    def _transforms(self, frames: list[dict]) -> dict:
+        return {
+            **self._intrinsics(),
+            "timestep_indices": sorted({f["timestep_index"] for f in frames}),
+            "camera_indices": [0],
+            "frames": frames,
+        }
+
+
+def _as_uint8(values: np.ndarray) -> np.ndarray:
+    return values if values.dtype == np.uint8 else to_uint8(values)

@@ -1,0 +1,119 @@
+//! Binding of `urhead_core::raytrace`: one call builds the scene and renders it.
+
+use numpy::PyReadonlyArrayDyn;
+use pyo3::prelude::*;
+use pyo3::types::PyTuple;
+use urhead_core::raytrace::{render, Light, RenderSettings, Scene, SceneInputs, Texture};
+
+use crate::arrays::{array, data, shape};
+use crate::camera::{camera, CameraArgs};
+use crate::errors::{py_err, ShapeError};
+use crate::pool::with_threads;
+
+type Arr<'py, T> = PyReadonlyArrayDyn<'py, T>;
+
+/// `(direction, color, angular_radius, ambient_up, ambient_down, up)`
+pub type LightArgs = ([f32; 3], [f32; 3], f32, [f32; 3], [f32; 3], [f32; 3]);
+
+/// Renders a triangle scene → (rgb (H,W,3), alpha (H,W), normal (H,W,3), depth (H,W),
+/// centre_face (H,W) int32, centre_bary (H,W,2), centre_t (H,W)).
+#[pyfunction]
+pub fn raytrace_render<'py>(
+    py: Python<'py>,
+    vertices: Arr<'py, f32>,
+    faces: Arr<'py, i32>,
+    normals: Arr<'py, f32>,
+    colors: Arr<'py, f32>,
+    solid: Arr<'py, f32>,
+    uvs: Option<Arr<'py, f32>>,
+    texture: Option<Arr<'py, f32>>,
+    face_material: Arr<'py, i32>,
+    materials: Arr<'py, f32>,
+    decals: Arr<'py, f32>,
+    light: LightArgs,
+    camera_args: CameraArgs,
+    samples_per_side: u32,
+    edge_samples_per_side: u32,
+    shadows: bool,
+    background: [f32; 3],
+    seed: u32,
+    num_threads: usize,
+) -> PyResult<Bound<'py, PyTuple>> {
+    let cam = camera(camera_args)?;
+    shape(&vertices, "vertices", 2, "(V, 3)")?;
+    shape(&faces, "faces", 2, "(F, 3)")?;
+    shape(&normals, "normals", 2, "(V, 3)")?;
+    shape(&colors, "colors", 2, "(V, 3)")?;
+    shape(&solid, "solid", 2, "(V, 3)")?;
+    shape(&face_material, "face_material", 1, "(F,)")?;
+    shape(&materials, "materials", 2, "(M, 8)")?;
+    shape(&decals, "decals", 2, "(D, 12)")?;
+    if let Some(u) = &uvs {
+        shape(u, "uvs", 2, "(V, 2)")?;
+    }
+    let tex = match &texture {
+        Some(t) => {
+            let s = shape(t, "texture", 3, "(TH, TW, 3)")?;
+            if s[2] != 3 {
+                return Err(ShapeError::new_err(format!(
+                    "texture must be (TH, TW, 3), got {s:?}"
+                )));
+            }
+            Some(Texture {
+                data: data(t, "texture")?,
+                width: s[1],
+                height: s[0],
+            })
+        }
+        None => None,
+    };
+    let (direction, color, angular_radius, ambient_up, ambient_down, up) = light;
+    let inputs = SceneInputs {
+        vertices: data(&vertices, "vertices")?,
+        faces: data(&faces, "faces")?,
+        normals: data(&normals, "normals")?,
+        colors: data(&colors, "colors")?,
+        solid: data(&solid, "solid")?,
+        uvs: uvs.as_ref().map(|u| data(u, "uvs")).transpose()?,
+        face_material: data(&face_material, "face_material")?,
+        materials: data(&materials, "materials")?,
+        decals: data(&decals, "decals")?,
+        texture: tex,
+        light: Light {
+            direction,
+            color,
+            angular_radius,
+            ambient_up,
+            ambient_down,
+            up,
+        },
+    };
+    let settings = RenderSettings {
+        samples_per_side,
+        edge_samples_per_side,
+        shadows,
+        background,
+        seed,
+    };
+    let out = py
+        .allow_threads(|| {
+            with_threads(num_threads, || {
+                let scene = Scene::new(inputs)?;
+                render(&scene, &cam, settings)
+            })
+        })
+        .map_err(py_err)?;
+    let (h, w) = (cam.height as usize, cam.width as usize);
+    PyTuple::new(
+        py,
+        [
+            array(py, out.rgb, &[h, w, 3])?.into_any(),
+            array(py, out.alpha, &[h, w])?.into_any(),
+            array(py, out.normal, &[h, w, 3])?.into_any(),
+            array(py, out.depth, &[h, w])?.into_any(),
+            array(py, out.centre_face, &[h, w])?.into_any(),
+            array(py, out.centre_bary, &[h, w, 2])?.into_any(),
+            array(py, out.centre_t, &[h, w])?.into_any(),
+        ],
+    )
+}
