@@ -9,8 +9,8 @@ mod errors;
 mod lbs;
 mod pool;
 mod raster;
-mod splat;
 mod raytrace;
+mod splat;
 
 use pyo3::prelude::*;
 
