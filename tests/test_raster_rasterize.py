@@ -158,6 +158,20 @@ def test_case1_huge_triangle_through_the_near_plane_covers_the_screen():
     assert torch.isfinite(out.bary).all()
 
 
+def test_pixels_beyond_the_far_plane_stay_empty():
+    cam = identity_camera(32, 24, focal=30.0, near=0.01, far=2.0)
+    verts = torch.tensor(
+        [[-1.5, -1.0, 1.0], [1.5, -1.0, 3.0], [0.0, 1.5, 2.0]], dtype=torch.float64
+    )
+    faces = torch.tensor([[0, 1, 2]], dtype=torch.int32)
+    out, expected = ops.rasterize(verts, faces, cam), ref.rasterize(verts, faces, cam)
+    covered = out.tri_id >= 0
+    assert torch.equal(out.tri_id, expected.tri_id)
+    assert covered.any() and (out.depth[covered] <= 2.0).all()
+    far_away = ops.rasterize(verts, faces, identity_camera(32, 24, focal=30.0, far=100.0))
+    assert ((far_away.tri_id >= 0) & ~covered).any()  # the far plane did cut pixels
+
+
 # --- NUMERICS.md case 2: degenerate triangles ---------------------------------------------
 
 
