@@ -44,12 +44,12 @@ def test_forward_and_gradients_match_reference(cam_args):
     expected = ref.antialias(color, raster, v, faces, cam)
     changed = (out != color).any(-1)
     assert changed.sum() > 40
-    assert (out - expected).abs().max() < 1e-13
+    assert (out - expected).abs().max() < 1e-15
     weights = torch.randn(out.shape, dtype=torch.float64, generator=g)
     grads = torch.autograd.grad((out * weights).sum(), (color, v))
     e_grads = torch.autograd.grad((expected * weights).sum(), (color, v))
     assert rel_err(grads[0], e_grads[0]) < 1e-14
-    assert rel_err(grads[1], e_grads[1]) < 1e-11
+    assert rel_err(grads[1], e_grads[1]) < 1e-13
     assert grads[1].abs().sum() > 0
 
 
@@ -72,9 +72,9 @@ def test_float32_agrees_with_float64():
 
     out32, c32, v32 = run(torch.float32)
     out64, c64, v64 = run(torch.float64)
-    assert (out32.double() - out64).abs().max() < 1e-5
-    assert rel_err(c32.double(), c64) < 1e-6
-    assert rel_err(v32.double(), v64) < 1e-4
+    assert (out32.double() - out64).abs().max() < 2e-6
+    assert rel_err(c32.double(), c64) < 5e-7
+    assert rel_err(v32.double(), v64) < 2e-6
 
 
 def test_topology_matches_reference():

@@ -26,12 +26,12 @@ def test_forward_matches_reference(scene, dtype):
     out = ops.interpolate(attr, raster, faces)
     assert out.shape == (cam.height, cam.width, 5) and out.dtype == dtype
     expected = ref.interpolate(attr.double(), raster._replace(bary=raster.bary.double()), faces)
-    assert (out.double() - expected).abs().max() < (2e-6 if dtype == torch.float32 else 1e-14)
+    assert (out.double() - expected).abs().max() < (1e-6 if dtype == torch.float32 else 1e-14)
     assert (out[raster.tri_id < 0] == 0).all()
     # UV coordinates through the UV faces (seam vertices are duplicated in UV only).
     uv = ops.interpolate(uvs.to(dtype), raster, uv_faces)
     uv_ref = ref.interpolate(uvs.double(), raster._replace(bary=raster.bary.double()), uv_faces)
-    assert (uv.double() - uv_ref).abs().max() < (1e-6 if dtype == torch.float32 else 1e-14)
+    assert (uv.double() - uv_ref).abs().max() < (5e-7 if dtype == torch.float32 else 1e-14)
 
 
 def test_gradients_match_reference_through_the_rasterizer(scene):
@@ -62,7 +62,7 @@ def test_float32_gradients_agree_with_float64(scene):
         return torch.autograd.grad((out * weights.to(dtype)).sum(), (a, b))
 
     for g32, g64 in zip(grads(torch.float32), grads(torch.float64), strict=True):
-        assert rel_err(g32.double(), g64) < 1e-6
+        assert rel_err(g32.double(), g64) < 5e-7
 
 
 def test_gradcheck_attr_and_bary(scene):

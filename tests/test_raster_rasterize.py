@@ -44,7 +44,7 @@ def test_forward_float32_agrees_with_float64_reference():
     expected = ref.rasterize(verts.float().double(), faces, cam)
     assert torch.equal(out.tri_id, expected.tri_id)
     assert out.bary.dtype == torch.float32
-    assert (out.bary.double() - expected.bary).abs().max() < 2e-6
+    assert (out.bary.double() - expected.bary).abs().max() < 1e-6
     covered = out.tri_id >= 0
     assert (out.depth.double() - expected.depth)[covered].abs().max() < 1e-6
 
@@ -57,7 +57,7 @@ def test_gradient_matches_reference(cam_args):
     v = verts.clone().requires_grad_(True)
     (g,) = torch.autograd.grad(bary_loss(v, faces, cam, weights), v)
     (g_ref,) = torch.autograd.grad((ref.rasterize(v, faces, cam).bary * weights).sum(), v)
-    assert rel_err(g, g_ref) < 1e-11
+    assert rel_err(g, g_ref) < 2e-12
 
 
 def test_gradient_float32_agrees_with_float64_reference():
@@ -68,7 +68,7 @@ def test_gradient_float32_agrees_with_float64_reference():
     (g,) = torch.autograd.grad(bary_loss(v32, faces, cam, weights.float()), v32)
     v64 = verts.float().double().requires_grad_(True)
     (g_ref,) = torch.autograd.grad((ref.rasterize(v64, faces, cam).bary * weights).sum(), v64)
-    assert rel_err(g.double(), g_ref) < 1e-5
+    assert rel_err(g.double(), g_ref) < 2e-6
 
 
 def directional_check(verts, faces, cam, weights, seed, h=1e-7):
@@ -96,7 +96,7 @@ def test_gradient_matches_finite_differences(seed):
         cam.height, cam.width, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(seed)
     )
     an, fd = directional_check(verts, faces, cam, weights, seed)
-    assert abs(an - fd) <= 1e-6 * max(1.0, abs(fd))
+    assert abs(an - fd) <= 1e-7 * max(1.0, abs(fd))
 
 
 # --- NUMERICS.md case 1: near plane ------------------------------------------------------
@@ -120,17 +120,18 @@ def test_case1_triangle_through_the_near_plane_covers_the_clipped_polygon(behind
     expected = ref.rasterize(verts, faces, cam)  # exact ray/plane coverage with z ≥ near
     covered = out.tri_id >= 0
     assert covered.sum() > 200
-    # Snapped vs exact coverage may differ only within a sub-pixel step of an edge.
-    assert (out.tri_id != expected.tri_id).sum() <= 2
+    # Snapped and exact coverage could differ only within a sub-pixel step of an edge;
+    # for this geometry they agree.
+    assert torch.equal(out.tri_id, expected.tri_id)
     both = covered & (expected.tri_id >= 0)
-    assert (out.bary - expected.bary)[both].abs().max() < 1e-9
+    assert (out.bary - expected.bary)[both].abs().max() < 1e-13
     assert (out.depth[covered] >= cam.near * (1 - 1e-9)).all()
     assert torch.isfinite(out.bary).all()
     v = verts.clone().requires_grad_(True)
     (g,) = torch.autograd.grad(ops.rasterize(v, faces, cam).bary.sum(), v)
     (g_ref,) = torch.autograd.grad((ref.rasterize(v, faces, cam).bary * both[..., None]).sum(), v)
     assert torch.isfinite(g).all()
-    assert rel_err(g, g_ref) < 1e-3  # the two differ only by the ≤ 2 boundary pixels
+    assert rel_err(g, g_ref) < 1e-12
 
 
 def test_case1_triangle_fully_behind_the_camera_is_culled():
@@ -155,6 +156,20 @@ def test_case1_huge_triangle_through_the_near_plane_covers_the_screen():
     assert (out.tri_id == 0).all()
     assert (out.bary - expected.bary).abs().max() < 1e-9
     assert torch.isfinite(out.bary).all()
+
+
+def test_pixels_beyond_the_far_plane_stay_empty():
+    cam = identity_camera(32, 24, focal=30.0, near=0.01, far=2.0)
+    verts = torch.tensor(
+        [[-1.5, -1.0, 1.0], [1.5, -1.0, 3.0], [0.0, 1.5, 2.0]], dtype=torch.float64
+    )
+    faces = torch.tensor([[0, 1, 2]], dtype=torch.int32)
+    out, expected = ops.rasterize(verts, faces, cam), ref.rasterize(verts, faces, cam)
+    covered = out.tri_id >= 0
+    assert torch.equal(out.tri_id, expected.tri_id)
+    assert covered.any() and (out.depth[covered] <= 2.0).all()
+    far_away = ops.rasterize(verts, faces, identity_camera(32, 24, focal=30.0, far=100.0))
+    assert ((far_away.tri_id >= 0) & ~covered).any()  # the far plane did cut pixels
 
 
 # --- NUMERICS.md case 2: degenerate triangles ---------------------------------------------
@@ -228,12 +243,12 @@ def test_case3_sliver_barycentrics_sum_to_one_and_match_finite_differences(dtype
     if dtype == torch.float64:
         expected = ref.rasterize(verts, faces, cam)
         assert torch.equal(out.tri_id, expected.tri_id)
-        assert (out.bary - expected.bary).abs().max() < 1e-9
+        assert (out.bary - expected.bary).abs().max() < 1e-14
         weights = torch.randn(
             16, 1008, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(5)
         )
         an, fd = directional_check(verts, faces, cam, weights, seed=6, h=1e-9)
-        assert abs(an - fd) <= 1e-5 * max(1.0, abs(fd))
+        assert abs(an - fd) <= 5e-7 * max(1.0, abs(fd))
 
 
 def test_case3_sliver_thinner_than_a_subpixel_step_is_dropped():

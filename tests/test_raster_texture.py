@@ -27,7 +27,7 @@ def test_forward_matches_reference(size, dtype):
     out = ops.texture(tex, uv)
     expected = ref.texture(tex.double(), uv.double())
     assert out.shape == (200, 4) and out.dtype == dtype
-    assert (out.double() - expected).abs().max() < (2e-6 if dtype == torch.float32 else 1e-14)
+    assert (out.double() - expected).abs().max() < (5e-6 if dtype == torch.float32 else 1e-14)
 
 
 def test_leading_dimensions_are_kept():
@@ -47,7 +47,7 @@ def test_gradients_match_reference(size):
     e_tex, e_uv = torch.autograd.grad((ref.texture(tex, uv) * weights).sum(), (tex, uv))
     assert g_tex.is_sparse
     assert (g_tex.to_dense() - e_tex).abs().max() < 1e-13
-    assert (g_uv - e_uv).abs().max() < 1e-11 * max(1.0, float(e_uv.abs().max()))
+    assert (g_uv - e_uv).abs().max() < 1e-14 * max(1.0, float(e_uv.abs().max()))
 
 
 def test_float32_gradients_agree_with_float64():
@@ -62,7 +62,7 @@ def test_float32_gradients_agree_with_float64():
     (t32, u32), (t64, u64) = grads(torch.float32), grads(torch.float64)
     d32, d64 = t32.to_dense().double(), t64.to_dense()
     assert ((d32 - d64).norm() / d64.norm()) < 1e-6
-    assert ((u32.double() - u64).norm() / u64.norm()) < 1e-5
+    assert ((u32.double() - u64).norm() / u64.norm()) < 2e-6
 
 
 def test_gradcheck_uv_and_tex():

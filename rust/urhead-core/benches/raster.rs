@@ -7,6 +7,7 @@
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use rayon::prelude::*;
+use urhead_core::memory::zeroed;
 use urhead_core::raster::{
     antialias_backward, antialias_forward, edge_topology, interpolate_backward, interpolate_forward,
     rasterize_backward, rasterize_forward, texture_backward, texture_forward, AntialiasInputs,
@@ -103,7 +104,7 @@ fn mix_forward(x: &[f32], mix: &[f32], tri_id: &[i32]) -> Vec<f32> {
 
 /// Transpose of [`mix_forward`]: no gradient reaches background samples.
 fn mix_backward(g: &[f32], mix: &[f32], tri_id: &[i32]) -> Vec<f32> {
-    let mut out = vec![0.0f32; tri_id.len() * CHANNELS];
+    let mut out: Vec<f32> = zeroed(tri_id.len() * CHANNELS);
     out.par_chunks_mut(CHANNELS)
         .zip(g.par_chunks_exact(3))
         .zip(tri_id.par_iter())

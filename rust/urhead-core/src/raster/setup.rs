@@ -243,15 +243,27 @@ fn setup_triangle<T: Real>(
     vp: &Viewport,
     coverage: &mut Vec<CoverageTri>,
 ) -> Option<TrianglePlanes<T>> {
-    let poly = clip(verts, vp);
-    if poly.len < 3 {
+    let mut fixed = [[0i64; 2]; MAX_POLY];
+    // Fast path: nearly every triangle lies inside all clip planes.
+    let len = if verts
+        .iter()
+        .all(|h| (0..5).all(|p| clip_distance(h, p, vp) >= 0.0))
+    {
+        for i in 0..3 {
+            fixed[i] = snap(&verts[i], vp);
+        }
+        3
+    } else {
+        let poly = clip(verts, vp);
+        for i in 0..poly.len {
+            fixed[i] = snap(&poly.verts[i], vp);
+        }
+        poly.len
+    };
+    if len < 3 {
         return None;
     }
-    let mut fixed = [[0i64; 2]; MAX_POLY];
-    for i in 0..poly.len {
-        fixed[i] = snap(&poly.verts[i], vp);
-    }
-    let (x0, _, y0, _) = pixel_bbox(&fixed[..poly.len], vp)?;
+    let (x0, _, y0, _) = pixel_bbox(&fixed[..len], vp)?;
     let origin = [x0 as i32, y0 as i32];
     let frame = plane_frame(verts, origin)?;
     let planes = TrianglePlanes {
@@ -260,7 +272,7 @@ fn setup_triangle<T: Real>(
         origin,
     };
     let start = coverage.len();
-    for i in 1..poly.len - 1 {
+    for i in 1..len - 1 {
         if let Some(c) = coverage_triangle(tri, [fixed[0], fixed[i], fixed[i + 1]], vp) {
             coverage.push(c);
         }
