@@ -85,15 +85,29 @@ impl Binning {
         }
 
         let order = depth_order(inputs, &rects);
-        let mut tile_counts = vec![0u32; num_tiles];
-        for &g in &order {
-            let [x0, x1, y0, y1] = rects[g as usize];
-            for ty in y0..y1 {
-                for c in &mut tile_counts[ty * tiles_x + x0..ty * tiles_x + x1] {
-                    *c += 1;
+        // Counts do not depend on the order: per-chunk integer counts, summed.
+        let tile_counts = rects
+            .par_chunks(4096)
+            .map(|chunk| {
+                let mut counts = vec![0u32; num_tiles];
+                for &[x0, x1, y0, y1] in chunk {
+                    for ty in y0..y1 {
+                        for c in &mut counts[ty * tiles_x + x0..ty * tiles_x + x1] {
+                            *c += 1;
+                        }
+                    }
                 }
-            }
-        }
+                counts
+            })
+            .reduce(
+                || vec![0u32; num_tiles],
+                |mut a, b| {
+                    for (x, y) in a.iter_mut().zip(&b) {
+                        *x += y;
+                    }
+                    a
+                },
+            );
         let mut tile_offsets = Vec::with_capacity(num_tiles + 1);
         tile_offsets.push(0u32);
         for c in &tile_counts {

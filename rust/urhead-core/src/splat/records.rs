@@ -52,7 +52,12 @@ impl<T: Real> RowRecords<T> {
     /// Record `r`: (T before, g, slot, contributing bits).
     #[inline(always)]
     pub(super) fn get<L: Lanes<Elem = T>>(&self, r: usize) -> (L, L, usize, u8) {
-        let lanes = |v: &[T]| L::from_array(std::array::from_fn(|i| v[r * WIDTH + i]));
+        let lanes = |v: &[T]| {
+            let chunk: [T; WIDTH] = v[r * WIDTH..(r + 1) * WIDTH]
+                .try_into()
+                .expect("records hold 8 lanes");
+            L::from_array(chunk)
+        };
         let (slot, bits) = self.meta[r];
         (lanes(&self.t), lanes(&self.g), slot as usize, bits)
     }
