@@ -114,6 +114,49 @@ class RayTraced(NamedTuple):
     """(H, W) float32 distance along the unit centre ray to that hit (0 for none)."""
 
 
+class TriangleBvh:
+    """A BVH over a triangle mesh, kept between the frames of an animation whose topology
+    never changes.
+
+    ``raytrace(..., bvh=tree)`` refits it to that call's vertices (every bound recomputed,
+    the tree's grouping kept) instead of building a new tree: for ~250k triangles about
+    0.01 s instead of 0.12 s. The result depends only on the mesh the tree was built from,
+    never on earlier frames, so renders stay deterministic; it is exact for any vertices,
+    only slower to traverse the further the mesh moves from that shape. Images match
+    those of a fresh tree except where two faces are hit at exactly the same distance.
+
+    Args:
+        vertices: (V, 3) positions to build the tree over.
+        faces: (F, 3) vertex indices; every render given this tree must have F faces.
+    """
+
+    def __init__(self, vertices, faces):
+        vertices = _vertices(vertices)
+        self._core = _core.TriangleBvh(vertices, _faces(faces, len(vertices)))
+
+    @property
+    def num_faces(self) -> int:
+        return self._core.num_faces
+
+
+def _vertices(vertices) -> np.ndarray:
+    vertices = np.ascontiguousarray(np.asarray(vertices, dtype=np.float32))
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise ShapeError(f"vertices must be (N, 3), got {vertices.shape}")
+    return vertices
+
+
+def _faces(faces, num_vertices: int) -> np.ndarray:
+    faces = np.asarray(faces)
+    if faces.ndim != 2 or faces.shape[1] != 3 or faces.dtype.kind not in "iu":
+        raise ShapeError(f"faces must be (F, 3) integers, got {faces.shape} {faces.dtype}")
+    if len(faces) and (faces.min() < 0 or faces.max() >= num_vertices):
+        raise IndexRangeError(
+            f"faces must index [0, {num_vertices}), got [{faces.min()}, {faces.max()}]"
+        )
+    return np.ascontiguousarray(faces, dtype=np.int32)
+
+
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(V, 3) area-weighted unit vertex normals (zero for unused vertices)."""
     v = np.asarray(vertices, np.float64)
@@ -145,6 +188,7 @@ def raytrace(
     shadows: bool = True,
     background=(1.0, 1.0, 1.0),
     seed: int = 0,
+    bvh: TriangleBvh | None = None,
 ) -> RayTraced:
     """Ray-trace a triangle mesh.
 
@@ -168,6 +212,8 @@ def raytrace(
         shadows: trace shadow rays to the key light.
         background: RGB behind the scene.
         seed: seed of the sample jitter.
+        bvh: a :class:`TriangleBvh` over ``len(faces)`` faces to refit to ``vertices``
+            instead of building a tree (for the frames of an animation).
 
     Returns:
         :class:`RayTraced` numpy arrays.
@@ -179,14 +225,11 @@ def raytrace(
             raise ShapeError(f"{name} must be (N, {cols}), got {a.shape}")
         return a
 
-    vertices = f32("vertices", vertices, 3)
-    faces = np.asarray(faces)
-    if faces.ndim != 2 or faces.shape[1] != 3 or faces.dtype.kind not in "iu":
-        raise ShapeError(f"faces must be (F, 3) integers, got {faces.shape} {faces.dtype}")
+    vertices = _vertices(vertices)
+    faces = _faces(faces, len(vertices))
     nv, nf = len(vertices), len(faces)
-    if nf and (faces.min() < 0 or faces.max() >= nv):
-        raise IndexRangeError(f"faces must index [0, {nv}), got [{faces.min()}, {faces.max()}]")
-    faces = np.ascontiguousarray(faces, dtype=np.int32)
+    if bvh is not None and bvh.num_faces != nf:
+        raise InvalidArgumentError(f"bvh was built over {bvh.num_faces} faces, the scene has {nf}")
     if normals is None:
         normals = vertex_normals(vertices, faces)
     if colors is None:
@@ -214,5 +257,6 @@ def raytrace(
         [float(c) for c in background],
         int(seed) & 0xFFFFFFFF,
         num_threads(),
+        None if bvh is None else bvh._core,
     )
     return RayTraced(*out)

@@ -30,5 +30,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(lbs::lbs_backward_f64, m)?)?;
     raster::register(m)?;
     m.add_function(wrap_pyfunction!(raytrace::raytrace_render, m)?)?;
+    m.add_class::<raytrace::PyTriangleBvh>()?;
     Ok(())
 }
