@@ -14,9 +14,11 @@ use glam::Vec3A;
 use obvhs::aabb::Aabb;
 use obvhs::cwbvh::builder::build_cwbvh_from_tris;
 use obvhs::cwbvh::CwBvh;
+use obvhs::ray::{Ray, RayHit};
 use obvhs::triangle::Triangle;
 use obvhs::BvhBuildParams;
 
+use super::intersect::{intersect_triangle, TriHit};
 use crate::error::{check_finite, check_indices, check_len, Error, Result};
 
 /// A triangle as three corner positions.
@@ -25,11 +27,14 @@ pub type Tri = [[f32; 3]; 3];
 /// Largest grid coordinate of obvhs' 8-bit child bounds.
 const QUANT_MAX: f32 = 255.0;
 
-/// A compressed wide BVH over a fixed number of triangles; see the module docs.
+/// A compressed wide BVH over a fixed number of triangles, with the triangles it
+/// traverses; see the module docs.
 #[derive(Clone, Debug)]
 pub struct TriangleBvh {
     cwbvh: CwBvh,
-    num_tris: usize,
+    /// The triangles in the tree's primitive order (`ordered[i]` is triangle
+    /// `primitive_indices[i]`), so a leaf's triangles sit side by side in memory.
+    ordered: Vec<Tri>,
     /// Node indices with every node after all of its descendants (a refit's order).
     children_first: Vec<u32>,
 }
@@ -41,7 +46,7 @@ impl TriangleBvh {
         if tris.is_empty() {
             return Self {
                 cwbvh: CwBvh::default(),
-                num_tris: 0,
+                ordered: Vec::new(),
                 children_first: Vec::new(),
             };
         }
@@ -55,9 +60,14 @@ impl TriangleBvh {
             .collect();
         let cwbvh = build_cwbvh_from_tris(&triangles, BvhBuildParams::fast_build(), &mut Duration::default());
         let children_first = children_first_order(&cwbvh);
+        let ordered = cwbvh
+            .primitive_indices
+            .iter()
+            .map(|&p| tris[p as usize])
+            .collect();
         Self {
             cwbvh,
-            num_tris: tris.len(),
+            ordered,
             children_first,
         }
     }
@@ -70,23 +80,56 @@ impl TriangleBvh {
 
     /// Number of triangles the tree was built over (and every refit must give).
     pub fn num_tris(&self) -> usize {
-        self.num_tris
+        self.ordered.len()
     }
 
-    /// The obvhs tree, for traversal.
-    pub fn cwbvh(&self) -> &CwBvh {
-        &self.cwbvh
+    /// The closest hit along `origin + t·dir` (unit `dir`) with `t` in `(t_min, t_max)`:
+    /// (triangle index, hit). Ties keep the first triangle the traversal meets.
+    pub fn closest_hit(
+        &self,
+        origin: [f32; 3],
+        dir: [f32; 3],
+        t_min: f32,
+        t_max: f32,
+    ) -> Option<(usize, TriHit)> {
+        if self.ordered.is_empty() {
+            return None;
+        }
+        let ray = Ray::new(origin.into(), dir.into(), t_min, t_max);
+        let mut hit = RayHit::none();
+        let mut best: Option<(usize, TriHit)> = None;
+        self.cwbvh.ray_traverse(ray, &mut hit, |r, id| {
+            match intersect_triangle(origin, dir, &self.ordered[id], t_min, r.tmax) {
+                Some(h) => {
+                    best = Some((id, h));
+                    h.t
+                }
+                None => f32::INFINITY,
+            }
+        });
+        best.map(|(id, h)| (self.cwbvh.primitive_indices[id] as usize, h))
+    }
+
+    /// Whether any triangle lies along `origin + t·dir` for `t` in `(t_min, t_max)`.
+    pub fn occluded(&self, origin: [f32; 3], dir: [f32; 3], t_min: f32, t_max: f32) -> bool {
+        if self.ordered.is_empty() {
+            return false;
+        }
+        let ray = Ray::new(origin.into(), dir.into(), t_min, t_max);
+        !self.cwbvh.ray_traverse_miss(ray, |_, id| {
+            intersect_triangle(origin, dir, &self.ordered[id], t_min, t_max).map_or(f32::INFINITY, |h| h.t)
+        })
     }
 
     /// Moves the bounds to `tris` (the same number of triangles as the build, in the same
     /// order). Errors, before changing anything, when the count differs.
     pub fn refit(&mut self, tris: &[Tri]) -> Result<()> {
-        if tris.len() != self.num_tris {
+        if tris.len() != self.ordered.len() {
             return Err(Error::Invalid {
                 arg: "bvh",
                 reason: format!(
                     "was built over {} triangles, cannot be refit to {}",
-                    self.num_tris,
+                    self.ordered.len(),
                     tris.len()
                 ),
             });
@@ -95,6 +138,9 @@ impl TriangleBvh {
             return Ok(());
         }
         let bvh = &mut self.cwbvh;
+        for (slot, &p) in self.ordered.iter_mut().zip(&bvh.primitive_indices) {
+            *slot = tris[p as usize];
+        }
         let mut bounds = vec![Aabb::empty(); bvh.nodes.len()];
         for &n in &self.children_first {
             let n = n as usize;
@@ -113,9 +159,9 @@ impl TriangleBvh {
                     // Leaf: offset in the low 5 bits, count in unary in the high 3.
                     let first = node.primitive_base_idx as usize + (meta & 0b1_1111) as usize;
                     let count = (meta >> 5).count_ones() as usize;
-                    bvh.primitive_indices[first..first + count]
+                    self.ordered[first..first + count]
                         .iter()
-                        .fold(Aabb::empty(), |b, &p| b.union(&tri_bounds(&tris[p as usize])))
+                        .fold(Aabb::empty(), |b, t| b.union(&tri_bounds(t)))
                 });
             }
             let node_bounds = child_bounds

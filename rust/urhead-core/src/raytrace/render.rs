@@ -296,7 +296,7 @@ impl Rig<'_> {
         };
         let scene = self.scene;
         let inputs = &scene.inputs;
-        let tri = scene.triangle(face);
+        let tri = &scene.triangle(face);
         let mut geo = normalize(cross(sub(tri[1], tri[0]), sub(tri[2], tri[0])));
         if dot(geo, dir) > 0.0 {
             geo = geo.map(|x| -x);

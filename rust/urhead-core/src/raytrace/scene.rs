@@ -3,10 +3,8 @@
 
 use std::borrow::Cow;
 
-use obvhs::ray::{Ray, RayHit};
-
 use super::bvh::{mesh_triangles, Tri, TriangleBvh};
-use super::intersect::{intersect_triangle, TriHit};
+use super::intersect::TriHit;
 use super::procedural::{normalize, Decal, DecalGrid, DECAL_FLOATS};
 use crate::error::{check_finite, check_indices, check_len, Error, Result};
 
@@ -106,7 +104,6 @@ pub struct Scene<'a> {
     pub inputs: SceneInputs<'a>,
     pub materials: Vec<Material>,
     pub decals: DecalGrid,
-    tris: Vec<Tri>,
     bvh: Cow<'a, TriangleBvh>,
 }
 
@@ -122,7 +119,6 @@ impl<'a> Scene<'a> {
             inputs,
             materials,
             decals: DecalGrid::new(decals),
-            tris,
             bvh,
         })
     }
@@ -137,17 +133,17 @@ impl<'a> Scene<'a> {
             inputs,
             materials,
             decals: DecalGrid::new(decals),
-            tris,
             bvh: Cow::Borrowed(bvh),
         })
     }
 
     pub fn num_faces(&self) -> usize {
-        self.tris.len()
+        self.inputs.faces.len() / 3
     }
 
     /// The closest hit along `origin + t·dir` (unit `dir`) with `t` in `(t_min, t_max)`:
     /// (face, hit). Ties keep the first face the traversal meets (a fixed order).
+    #[inline]
     pub fn closest_hit(
         &self,
         origin: [f32; 3],
@@ -155,39 +151,23 @@ impl<'a> Scene<'a> {
         t_min: f32,
         t_max: f32,
     ) -> Option<(usize, TriHit)> {
-        if self.tris.is_empty() {
-            return None;
-        }
-        let ray = Ray::new(origin.into(), dir.into(), t_min, t_max);
-        let mut hit = RayHit::none();
-        let mut best: Option<(usize, TriHit)> = None;
-        self.bvh.cwbvh().ray_traverse(ray, &mut hit, |r, id| {
-            let face = self.bvh.cwbvh().primitive_indices[id] as usize;
-            match intersect_triangle(origin, dir, &self.tris[face], t_min, r.tmax) {
-                Some(h) => {
-                    best = Some((face, h));
-                    h.t
-                }
-                None => f32::INFINITY,
-            }
-        });
-        best
+        self.bvh.closest_hit(origin, dir, t_min, t_max)
     }
 
     /// Whether anything lies along `origin + t·dir` for `t` in `(t_min, t_max)`.
+    #[inline]
     pub fn occluded(&self, origin: [f32; 3], dir: [f32; 3], t_min: f32, t_max: f32) -> bool {
-        if self.tris.is_empty() {
-            return false;
-        }
-        let ray = Ray::new(origin.into(), dir.into(), t_min, t_max);
-        !self.bvh.cwbvh().ray_traverse_miss(ray, |_, id| {
-            let face = self.bvh.cwbvh().primitive_indices[id] as usize;
-            intersect_triangle(origin, dir, &self.tris[face], t_min, t_max).map_or(f32::INFINITY, |h| h.t)
-        })
+        self.bvh.occluded(origin, dir, t_min, t_max)
     }
 
-    pub fn triangle(&self, face: usize) -> &[[f32; 3]; 3] {
-        &self.tris[face]
+    /// The corners of `face`.
+    pub fn triangle(&self, face: usize) -> Tri {
+        let v = self.inputs.vertices;
+        let f = &self.inputs.faces[face * 3..face * 3 + 3];
+        [0, 1, 2].map(|k| {
+            let i = f[k] as usize * 3;
+            [v[i], v[i + 1], v[i + 2]]
+        })
     }
 
     /// Barycentric interpolation of a per-vertex attribute with `D` floats per vertex.
