@@ -202,6 +202,16 @@ def test_a_kept_tree_refit_to_each_frame_renders_like_a_fresh_one():
             assert np.array_equal(a, b)
 
 
+def test_without_centre_hits_the_image_is_the_same():
+    verts, faces, normals = triangle_soup(np.random.default_rng(8), 40)
+    kwargs = dict(normals=normals, samples_per_side=2, edge_samples_per_side=3)
+    full = raytrace(verts, faces, off_centre_camera(), **kwargs)
+    image = raytrace(verts, faces, off_centre_camera(), centre_hits=False, **kwargs)
+    assert image.face is None and image.bary is None and image.t is None
+    for a, b in zip(full[:4], image[:4], strict=True):
+        assert np.array_equal(a, b)
+
+
 def test_bad_inputs_are_typed_and_named():
     verts = np.zeros((3, 3))
     cam = Camera.look_at((0, 0, 1), (0, 0, 0), width=8, height=8)

@@ -106,11 +106,12 @@ class RayTraced(NamedTuple):
     camera), normalised mean over the samples that hit; zero where none did."""
     depth: np.ndarray
     """(H, W) float32 linear camera-space depth, mean over the samples that hit; 0 else."""
-    face: np.ndarray
-    """(H, W) int32 face hit by the ray through the pixel centre, −1 for none."""
-    bary: np.ndarray
+    face: np.ndarray | None
+    """(H, W) int32 face hit by the ray through the pixel centre, −1 for none; this and
+    the next two are None when the call passed ``centre_hits=False``."""
+    bary: np.ndarray | None
     """(H, W, 2) float32 barycentrics (u, v) of that face's vertices 1 and 2."""
-    t: np.ndarray
+    t: np.ndarray | None
     """(H, W) float32 distance along the unit centre ray to that hit (0 for none)."""
 
 
@@ -186,6 +187,7 @@ def raytrace(
     samples_per_side: int = 4,
     edge_samples_per_side: int = 0,
     shadows: bool = True,
+    centre_hits: bool = True,
     background=(1.0, 1.0, 1.0),
     seed: int = 0,
     bvh: TriangleBvh | None = None,
@@ -210,6 +212,8 @@ def raytrace(
         edge_samples_per_side: m > n renders pixels whose first samples disagree
             (coverage, material, or depth spread over 1 %) again with m × m samples.
         shadows: trace shadow rays to the key light.
+        centre_hits: also trace the ray through each pixel centre for ``face``, ``bary``
+            and ``t`` (one more ray per pixel; without it they are None).
         background: RGB behind the scene.
         seed: seed of the sample jitter.
         bvh: a :class:`TriangleBvh` over ``len(faces)`` faces to refit to ``vertices``
@@ -254,6 +258,7 @@ def raytrace(
         int(samples_per_side),
         int(edge_samples_per_side),
         bool(shadows),
+        bool(centre_hits),
         [float(c) for c in background],
         int(seed) & 0xFFFFFFFF,
         num_threads(),

@@ -298,6 +298,7 @@ class _FrameRenderer:
             background=BACKGROUND,
             seed=self.config.seed * 100003 + t,
             bvh=self._bvh,
+            centre_hits=False,
         )
         normals_out = np.where(out.alpha[..., None] > 0, out.normal, 0.0)
         return np.clip(out.rgb, 0, 1), out.alpha, normals_out

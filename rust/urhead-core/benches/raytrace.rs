@@ -76,6 +76,7 @@ fn bench_raytrace(c: &mut Criterion) {
             samples_per_side: spp_side,
             edge_samples_per_side: 0,
             shadows: true,
+            centre_hits: true,
             background: [1.0; 3],
             seed: 0,
         };

@@ -80,6 +80,7 @@ fn settings(samples_per_side: u32) -> RenderSettings {
         samples_per_side,
         edge_samples_per_side: 4,
         shadows: true,
+        centre_hits: true,
         background: [1.0, 1.0, 1.0],
         seed: 3,
     }

@@ -56,7 +56,8 @@ impl PyTriangleBvh {
 }
 
 /// Renders a triangle scene → (rgb (H,W,3), alpha (H,W), normal (H,W,3), depth (H,W),
-/// centre_face (H,W) int32, centre_bary (H,W,2), centre_t (H,W)).
+/// centre_face (H,W) int32, centre_bary (H,W,2), centre_t (H,W)); the last three are None
+/// without `centre_hits`.
 #[pyfunction]
 pub fn raytrace_render<'py>(
     py: Python<'py>,
@@ -75,6 +76,7 @@ pub fn raytrace_render<'py>(
     samples_per_side: u32,
     edge_samples_per_side: u32,
     shadows: bool,
+    centre_hits: bool,
     background: [f32; 3],
     seed: u32,
     num_threads: usize,
@@ -133,6 +135,7 @@ pub fn raytrace_render<'py>(
         samples_per_side,
         edge_samples_per_side,
         shadows,
+        centre_hits,
         background,
         seed,
     };
@@ -149,16 +152,22 @@ pub fn raytrace_render<'py>(
         })
         .map_err(py_err)?;
     let (h, w) = (cam.height as usize, cam.width as usize);
-    PyTuple::new(
-        py,
-        [
-            array(py, out.rgb, &[h, w, 3])?.into_any(),
-            array(py, out.alpha, &[h, w])?.into_any(),
-            array(py, out.normal, &[h, w, 3])?.into_any(),
-            array(py, out.depth, &[h, w])?.into_any(),
-            array(py, out.centre_face, &[h, w])?.into_any(),
-            array(py, out.centre_bary, &[h, w, 2])?.into_any(),
-            array(py, out.centre_t, &[h, w])?.into_any(),
-        ],
-    )
+    let mut outputs = vec![
+        array(py, out.rgb, &[h, w, 3])?.into_any(),
+        array(py, out.alpha, &[h, w])?.into_any(),
+        array(py, out.normal, &[h, w, 3])?.into_any(),
+        array(py, out.depth, &[h, w])?.into_any(),
+    ];
+    if centre_hits {
+        outputs.push(array(py, out.centre_face, &[h, w])?.into_any());
+        outputs.push(array(py, out.centre_bary, &[h, w, 2])?.into_any());
+        outputs.push(array(py, out.centre_t, &[h, w])?.into_any());
+    } else {
+        outputs.extend([
+            py.None().into_bound(py),
+            py.None().into_bound(py),
+            py.None().into_bound(py),
+        ]);
+    }
+    PyTuple::new(py, outputs)
 }

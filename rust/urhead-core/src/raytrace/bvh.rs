@@ -41,7 +41,9 @@ pub struct TriangleBvh {
 
 impl TriangleBvh {
     /// Builds the tree over `tris` (single-threaded, so the same triangles always give
-    /// the same tree; obvhs' fast preset without spatial splits, which refits keep valid).
+    /// the same tree). obvhs' medium preset: ~10 % slower to build than its fast one for
+    /// ~5 % faster traversal (a kept tree is built rarely), and no spatial splits, whose
+    /// clipped bounds a refit could not keep.
     pub fn build(tris: &[Tri]) -> Self {
         if tris.is_empty() {
             return Self {
@@ -58,7 +60,11 @@ impl TriangleBvh {
                 v2: t[2].into(),
             })
             .collect();
-        let cwbvh = build_cwbvh_from_tris(&triangles, BvhBuildParams::fast_build(), &mut Duration::default());
+        let cwbvh = build_cwbvh_from_tris(
+            &triangles,
+            BvhBuildParams::medium_build(),
+            &mut Duration::default(),
+        );
         let children_first = children_first_order(&cwbvh);
         let ordered = cwbvh
             .primitive_indices

@@ -27,6 +27,9 @@ pub struct RenderSettings {
     pub edge_samples_per_side: u32,
     /// Trace shadow rays towards the key light.
     pub shadows: bool,
+    /// Also trace the exact ray through each pixel centre for the `centre_*` outputs
+    /// (one more ray per pixel); off, those outputs are empty.
+    pub centre_hits: bool,
     /// Colour behind the scene (the RGB output is composited over it).
     pub background: [f32; 3],
     /// Seed of the sample jitter and light sampling.
@@ -47,7 +50,8 @@ pub struct RenderOutput {
     /// (H, W) linear view-space depth (camera z), mean over the samples that hit; 0 where
     /// none did.
     pub depth: Vec<f32>,
-    /// (H, W) face hit by the ray through the pixel centre, −1 for none.
+    /// (H, W) face hit by the ray through the pixel centre, −1 for none. This and the
+    /// next two are empty unless `centre_hits` was set.
     pub centre_face: Vec<i32>,
     /// (H, W, 2) barycentrics (u, v) of vertices 1 and 2 of that face (0 for none).
     pub centre_bary: Vec<f32>,
@@ -122,10 +126,15 @@ pub fn render(scene: &Scene, camera: &Camera, settings: RenderSettings) -> Resul
         alpha: vec![0.0; pixels],
         normal: vec![0.0; pixels * 3],
         depth: vec![0.0; pixels],
-        centre_face: vec![-1; pixels],
-        centre_bary: vec![0.0; pixels * 2],
-        centre_t: vec![0.0; pixels],
+        centre_face: Vec::new(),
+        centre_bary: Vec::new(),
+        centre_t: Vec::new(),
     };
+    if settings.centre_hits {
+        out.centre_face = vec![-1; pixels];
+        out.centre_bary = vec![0.0; pixels * 2];
+        out.centre_t = vec![0.0; pixels];
+    }
     for tile in tiles {
         for (k, &(x, y)) in tile.coords.iter().enumerate() {
             let p = y * w + x;
@@ -133,9 +142,11 @@ pub fn render(scene: &Scene, camera: &Camera, settings: RenderSettings) -> Resul
             out.normal[p * 3..p * 3 + 3].copy_from_slice(&tile.normal[k]);
             out.alpha[p] = tile.alpha[k];
             out.depth[p] = tile.depth[k];
-            out.centre_face[p] = tile.centre_face[k];
-            out.centre_bary[p * 2..p * 2 + 2].copy_from_slice(&tile.centre_bary[k]);
-            out.centre_t[p] = tile.centre_t[k];
+            if settings.centre_hits {
+                out.centre_face[p] = tile.centre_face[k];
+                out.centre_bary[p * 2..p * 2 + 2].copy_from_slice(&tile.centre_bary[k]);
+                out.centre_t[p] = tile.centre_t[k];
+            }
         }
     }
     Ok(out)
@@ -212,6 +223,9 @@ impl Rig<'_> {
         out.depth.push(if hits > 0 { depth / hits as f32 } else { 0.0 });
         let cam_normal = normalize(self.to_camera_dir(normal));
         out.normal.push(if hits > 0 { cam_normal } else { [0.0; 3] });
+        if !self.settings.centre_hits {
+            return;
+        }
         // The exact centre ray, for the geometric outputs.
         let (origin, dir, t_min, t_max) = self.primary_ray(x as f32 + 0.5, y as f32 + 0.5);
         match self.scene.closest_hit(origin, dir, t_min, t_max) {
