@@ -300,8 +300,8 @@ class _FrameRenderer:
             bvh=self._bvh,
             centre_hits=False,
         )
-        normals_out = np.where(out.alpha[..., None] > 0, out.normal, 0.0)
-        return np.clip(out.rgb, 0, 1), out.alpha, normals_out
+        # The tracer's normals are already zero where no sample hit.
+        return np.clip(out.rgb, 0, 1), out.alpha, out.normal
 
     def _ribbons(self, strands: Strands, coarse, rotations):
         """Camera-facing ribbons along each strand; the normals at the two edges lean
