@@ -18,7 +18,7 @@ use obvhs::ray::{Ray, RayHit};
 use obvhs::triangle::Triangle;
 use obvhs::BvhBuildParams;
 
-use super::intersect::{intersect_triangle, TriHit};
+use super::intersect::{intersect_edges, triangle_edges, EdgeTri, TriHit};
 use crate::error::{check_finite, check_indices, check_len, Error, Result};
 
 /// A triangle as three corner positions.
@@ -33,8 +33,9 @@ const QUANT_MAX: f32 = 255.0;
 pub struct TriangleBvh {
     cwbvh: CwBvh,
     /// The triangles in the tree's primitive order (`ordered[i]` is triangle
-    /// `primitive_indices[i]`), so a leaf's triangles sit side by side in memory.
-    ordered: Vec<Tri>,
+    /// `primitive_indices[i]`), so a leaf's triangles sit side by side in memory, as
+    /// corner and edges ready for the intersection test.
+    ordered: Vec<EdgeTri>,
     /// Node indices with every node after all of its descendants (a refit's order).
     children_first: Vec<u32>,
 }
@@ -69,7 +70,7 @@ impl TriangleBvh {
         let ordered = cwbvh
             .primitive_indices
             .iter()
-            .map(|&p| tris[p as usize])
+            .map(|&p| triangle_edges(&tris[p as usize]))
             .collect();
         Self {
             cwbvh,
@@ -105,7 +106,7 @@ impl TriangleBvh {
         let mut hit = RayHit::none();
         let mut best: Option<(usize, TriHit)> = None;
         self.cwbvh.ray_traverse(ray, &mut hit, |r, id| {
-            match intersect_triangle(origin, dir, &self.ordered[id], t_min, r.tmax) {
+            match intersect_edges(origin, dir, &self.ordered[id], t_min, r.tmax) {
                 Some(h) => {
                     best = Some((id, h));
                     h.t
@@ -123,7 +124,7 @@ impl TriangleBvh {
         }
         let ray = Ray::new(origin.into(), dir.into(), t_min, t_max);
         !self.cwbvh.ray_traverse_miss(ray, |_, id| {
-            intersect_triangle(origin, dir, &self.ordered[id], t_min, t_max).map_or(f32::INFINITY, |h| h.t)
+            intersect_edges(origin, dir, &self.ordered[id], t_min, t_max).map_or(f32::INFINITY, |h| h.t)
         })
     }
 
@@ -145,7 +146,7 @@ impl TriangleBvh {
         }
         let bvh = &mut self.cwbvh;
         for (slot, &p) in self.ordered.iter_mut().zip(&bvh.primitive_indices) {
-            *slot = tris[p as usize];
+            *slot = triangle_edges(&tris[p as usize]);
         }
         let mut bounds = vec![Aabb::empty(); bvh.nodes.len()];
         for &n in &self.children_first {
@@ -165,9 +166,9 @@ impl TriangleBvh {
                     // Leaf: offset in the low 5 bits, count in unary in the high 3.
                     let first = node.primitive_base_idx as usize + (meta & 0b1_1111) as usize;
                     let count = (meta >> 5).count_ones() as usize;
-                    self.ordered[first..first + count]
+                    bvh.primitive_indices[first..first + count]
                         .iter()
-                        .fold(Aabb::empty(), |b, t| b.union(&tri_bounds(t)))
+                        .fold(Aabb::empty(), |b, &p| b.union(&tri_bounds(&tris[p as usize])))
                 });
             }
             let node_bounds = child_bounds
