@@ -13,7 +13,7 @@ import torch
 
 from urhead import Camera
 from urhead.errors import IndexRangeError, InvalidArgumentError, NonFiniteError
-from urhead.raytrace import Light, Material, decal, raytrace
+from urhead.raytrace import Light, Material, TriangleBvh, decal, raytrace
 
 
 def off_centre_camera(w=48, h=40) -> Camera:
@@ -184,6 +184,34 @@ def test_shadows_and_decals():
     assert np.array_equal(painted.rgb[lit], out.rgb[lit])
 
 
+def test_a_kept_tree_refit_to_each_frame_renders_like_a_fresh_one():
+    """The frames of an animation traced with one TriangleBvh (built over another shape)
+    give the same bits as building a tree per frame."""
+    rng = np.random.default_rng(7)
+    verts, faces, normals = triangle_soup(rng, 60)
+    tree = TriangleBvh(triangle_soup(rng, 60)[0], faces)
+    assert tree.num_faces == 60
+    cam = off_centre_camera()
+    for step in range(3):
+        frame = verts + step * np.array([0.05, -0.02, 0.03])
+        kwargs = dict(normals=normals, samples_per_side=2, edge_samples_per_side=3, seed=step)
+        fresh = raytrace(frame, faces, cam, **kwargs)
+        kept = raytrace(frame, faces, cam, bvh=tree, **kwargs)
+        assert (fresh.face >= 0).any()
+        for a, b in zip(fresh, kept, strict=True):
+            assert np.array_equal(a, b)
+
+
+def test_without_centre_hits_the_image_is_the_same():
+    verts, faces, normals = triangle_soup(np.random.default_rng(8), 40)
+    kwargs = dict(normals=normals, samples_per_side=2, edge_samples_per_side=3)
+    full = raytrace(verts, faces, off_centre_camera(), **kwargs)
+    image = raytrace(verts, faces, off_centre_camera(), centre_hits=False, **kwargs)
+    assert image.face is None and image.bary is None and image.t is None
+    for a, b in zip(full[:4], image[:4], strict=True):
+        assert np.array_equal(a, b)
+
+
 def test_bad_inputs_are_typed_and_named():
     verts = np.zeros((3, 3))
     cam = Camera.look_at((0, 0, 1), (0, 0, 0), width=8, height=8)
@@ -197,6 +225,13 @@ def test_bad_inputs_are_typed_and_named():
         raytrace(verts, [[0, 1, 2]], cam, face_material=[1])
     with pytest.raises(InvalidArgumentError, match="uvs"):
         raytrace(verts, [[0, 1, 2]], cam, materials=[Material(textured=True)])
+    tree = TriangleBvh(verts, [[0, 1, 2]])
+    with pytest.raises(InvalidArgumentError, match="bvh was built over 1 faces"):
+        raytrace(np.zeros((4, 3)), [[0, 1, 2], [1, 2, 3]], cam, bvh=tree)
+    with pytest.raises(IndexRangeError, match="faces"):
+        TriangleBvh(verts, [[0, 1, 3]])
+    with pytest.raises(NonFiniteError, match="vertices"):
+        TriangleBvh(np.full((3, 3), np.inf), [[0, 1, 2]])
 
 
 def test_same_bits_for_1_2_and_4_threads():

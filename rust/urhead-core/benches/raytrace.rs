@@ -1,8 +1,9 @@
 //! Ray tracer: a ~100k-triangle lit, shadowed, pore-textured sphere filling about half of
-//! a 512² image, at 1 and 16 samples per pixel (2 threads by default: RAYON_NUM_THREADS).
+//! a 512² image, at 1 and 16 samples per pixel (2 threads by default: RAYON_NUM_THREADS);
+//! building its BVH, and refitting a kept one to moved vertices (an animation frame).
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
-use urhead_core::raytrace::{render, Light, RenderSettings, Scene, SceneInputs};
+use urhead_core::raytrace::{render, Light, RenderSettings, Scene, SceneInputs, TriangleBvh};
 use urhead_core::Camera;
 
 /// A UV sphere of radius `r` at the origin with `stacks × slices × 2` triangles:
@@ -70,12 +71,28 @@ fn bench_raytrace(c: &mut Criterion) {
     let mut group = c.benchmark_group("raytrace");
     group.sample_size(10);
     group.bench_function("bvh_build_100k", |b| b.iter(|| Scene::new(inputs).unwrap()));
+    // A kept tree refit to a squashed copy: what each frame of `urhead synth` pays.
+    let moved: Vec<f32> = vertices
+        .chunks_exact(3)
+        .flat_map(|p| [p[0] * 1.1, p[1] * 0.9, p[2] + 0.3 * p[0]])
+        .collect();
+    let mut kept = TriangleBvh::from_mesh(&vertices, &faces).unwrap();
+    let moved_inputs = SceneInputs {
+        vertices: &moved,
+        ..inputs
+    };
+    group.bench_function("bvh_refit_100k", |b| {
+        b.iter(|| {
+            Scene::with_bvh(moved_inputs, &mut kept).unwrap();
+        })
+    });
     let scene = Scene::new(inputs).unwrap();
     for spp_side in [1u32, 4] {
         let settings = RenderSettings {
             samples_per_side: spp_side,
             edge_samples_per_side: 0,
             shadows: true,
+            centre_hits: true,
             background: [1.0; 3],
             seed: 0,
         };

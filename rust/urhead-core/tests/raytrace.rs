@@ -1,7 +1,7 @@
 //! Ray tracer: validation, determinism across thread counts, and geometric outputs on
 //! scenes whose answer is known in closed form.
 
-use urhead_core::raytrace::{render, Light, RenderOutput, RenderSettings, Scene, SceneInputs};
+use urhead_core::raytrace::{render, Light, RenderOutput, RenderSettings, Scene, SceneInputs, TriangleBvh};
 use urhead_core::{Camera, Error};
 
 const LIGHT: Light = Light {
@@ -80,6 +80,7 @@ fn settings(samples_per_side: u32) -> RenderSettings {
         samples_per_side,
         edge_samples_per_side: 4,
         shadows: true,
+        centre_hits: true,
         background: [1.0, 1.0, 1.0],
         seed: 3,
     }
@@ -234,4 +235,61 @@ fn bad_inputs_name_the_argument() {
             ..
         }
     ));
+}
+
+/// `n` random triangles in front of `camera(37, 29)`, with per-vertex normals.
+fn soup(seed: u64, n: usize) -> Mesh {
+    let mut rng = urhead_core::testing::Rng::new(seed);
+    let mut vertices = Vec::new();
+    for _ in 0..n {
+        let c = [
+            rng.uniform(-0.8, 0.8),
+            rng.uniform(-0.7, 0.7),
+            rng.uniform(1.5, 3.0),
+        ];
+        for _ in 0..3 {
+            vertices.extend(c.map(|x| (x + rng.uniform(-0.25, 0.25)) as f32));
+        }
+    }
+    let normals = (0..n * 3).flat_map(|_| [0.0, 0.0, -1.0]).collect();
+    Mesh {
+        faces: (0..3 * n as i32).collect(),
+        colors: vec![0.6; n * 9],
+        materials: vec![0; n],
+        normals,
+        vertices,
+    }
+}
+
+#[test]
+fn a_refit_tree_renders_what_a_fresh_tree_renders() {
+    let m = soup(5, 300);
+    let cam = camera(37, 29);
+    let fresh = render(&Scene::new(inputs(&m)).unwrap(), &cam, settings(2)).unwrap();
+    // A tree built over an unrelated soup of the same size, then refit twice: the render
+    // depends only on the current triangles (random soups have no exactly tied hits).
+    let mut bvh = TriangleBvh::from_mesh(&soup(6, 300).vertices, &m.faces).unwrap();
+    let other = soup(7, 300);
+    render(
+        &Scene::with_bvh(inputs(&other), &mut bvh).unwrap(),
+        &cam,
+        settings(2),
+    )
+    .unwrap();
+    let refit = render(&Scene::with_bvh(inputs(&m), &mut bvh).unwrap(), &cam, settings(2)).unwrap();
+    assert!(fresh.alpha.iter().any(|&a| a > 0.0) && fresh.alpha.contains(&0.0));
+    assert!(fresh == refit);
+}
+
+#[test]
+fn a_tree_for_another_triangle_count_is_refused() {
+    let m = soup(5, 30);
+    let mut bvh = TriangleBvh::from_mesh(&m.vertices, &m.faces[..87]).unwrap();
+    let err = Scene::with_bvh(inputs(&m), &mut bvh).err().unwrap();
+    assert!(matches!(err, Error::Invalid { arg: "bvh", .. }), "{err}");
+    let err = TriangleBvh::from_mesh(&m.vertices, &[0, 1, 90]).unwrap_err();
+    assert!(
+        matches!(err, Error::IndexOutOfRange { arg: "faces", .. }),
+        "{err}"
+    );
 }

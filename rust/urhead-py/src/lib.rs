@@ -42,5 +42,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(splat::splat_rasterize_forward_f64, m)?)?;
     m.add_function(wrap_pyfunction!(splat::splat_rasterize_backward_f64, m)?)?;
     m.add_function(wrap_pyfunction!(raytrace::raytrace_render, m)?)?;
+    m.add_class::<raytrace::PyTriangleBvh>()?;
     Ok(())
 }

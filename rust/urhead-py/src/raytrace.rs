@@ -1,9 +1,12 @@
-//! Binding of `urhead_core::raytrace`: one call builds the scene and renders it.
+//! Binding of `urhead_core::raytrace`: one call builds the scene (or refits a kept BVH to
+//! it) and renders it.
+
+use std::sync::Mutex;
 
 use numpy::PyReadonlyArrayDyn;
 use pyo3::prelude::*;
 use pyo3::types::PyTuple;
-use urhead_core::raytrace::{render, Light, RenderSettings, Scene, SceneInputs, Texture};
+use urhead_core::raytrace::{render, Light, RenderSettings, Scene, SceneInputs, Texture, TriangleBvh};
 
 use crate::arrays::{array, data, shape};
 use crate::camera::{camera, CameraArgs};
@@ -15,8 +18,46 @@ type Arr<'py, T> = PyReadonlyArrayDyn<'py, T>;
 /// `(direction, color, angular_radius, ambient_up, ambient_down, up)`
 pub type LightArgs = ([f32; 3], [f32; 3], f32, [f32; 3], [f32; 3], [f32; 3]);
 
+/// A BVH kept between renders of a mesh whose topology never changes; each render that
+/// is given it refits it to that render's vertices. Renders sharing one wait for each
+/// other (the lock is taken with the GIL released).
+#[pyclass(frozen, name = "TriangleBvh")]
+pub struct PyTriangleBvh {
+    bvh: Mutex<TriangleBvh>,
+}
+
+#[pymethods]
+impl PyTriangleBvh {
+    /// Builds the tree over `vertices` (V, 3) float32 and `faces` (F, 3) int32.
+    #[new]
+    fn new(py: Python<'_>, vertices: Arr<'_, f32>, faces: Arr<'_, i32>) -> PyResult<Self> {
+        shape(&vertices, "vertices", 2, "(V, 3)")?;
+        shape(&faces, "faces", 2, "(F, 3)")?;
+        let (v, f) = (data(&vertices, "vertices")?, data(&faces, "faces")?);
+        let bvh = py
+            .allow_threads(|| TriangleBvh::from_mesh(v, f))
+            .map_err(py_err)?;
+        Ok(Self { bvh: Mutex::new(bvh) })
+    }
+
+    /// Number of triangles the tree was built over.
+    #[getter]
+    fn num_faces(&self) -> usize {
+        self.lock().num_tris()
+    }
+}
+
+impl PyTriangleBvh {
+    fn lock(&self) -> std::sync::MutexGuard<'_, TriangleBvh> {
+        // A panic while refitting cannot leave a tree that traverses wrongly: every refit
+        // recomputes all bounds before they are used.
+        self.bvh.lock().unwrap_or_else(|p| p.into_inner())
+    }
+}
+
 /// Renders a triangle scene → (rgb (H,W,3), alpha (H,W), normal (H,W,3), depth (H,W),
-/// centre_face (H,W) int32, centre_bary (H,W,2), centre_t (H,W)).
+/// centre_face (H,W) int32, centre_bary (H,W,2), centre_t (H,W)); the last three are None
+/// without `centre_hits`.
 #[pyfunction]
 pub fn raytrace_render<'py>(
     py: Python<'py>,
@@ -35,9 +76,11 @@ pub fn raytrace_render<'py>(
     samples_per_side: u32,
     edge_samples_per_side: u32,
     shadows: bool,
+    centre_hits: bool,
     background: [f32; 3],
     seed: u32,
     num_threads: usize,
+    bvh: Option<Bound<'py, PyTriangleBvh>>,
 ) -> PyResult<Bound<'py, PyTuple>> {
     let cam = camera(camera_args)?;
     shape(&vertices, "vertices", 2, "(V, 3)")?;
@@ -92,28 +135,39 @@ pub fn raytrace_render<'py>(
         samples_per_side,
         edge_samples_per_side,
         shadows,
+        centre_hits,
         background,
         seed,
     };
+    let kept = bvh.as_ref().map(|b| b.get());
     let out = py
         .allow_threads(|| {
-            with_threads(num_threads, || {
-                let scene = Scene::new(inputs)?;
-                render(&scene, &cam, settings)
+            with_threads(num_threads, || match kept {
+                Some(kept) => {
+                    let mut tree = kept.lock();
+                    render(&Scene::with_bvh(inputs, &mut tree)?, &cam, settings)
+                }
+                None => render(&Scene::new(inputs)?, &cam, settings),
             })
         })
         .map_err(py_err)?;
     let (h, w) = (cam.height as usize, cam.width as usize);
-    PyTuple::new(
-        py,
-        [
-            array(py, out.rgb, &[h, w, 3])?.into_any(),
-            array(py, out.alpha, &[h, w])?.into_any(),
-            array(py, out.normal, &[h, w, 3])?.into_any(),
-            array(py, out.depth, &[h, w])?.into_any(),
-            array(py, out.centre_face, &[h, w])?.into_any(),
-            array(py, out.centre_bary, &[h, w, 2])?.into_any(),
-            array(py, out.centre_t, &[h, w])?.into_any(),
-        ],
-    )
+    let mut outputs = vec![
+        array(py, out.rgb, &[h, w, 3])?.into_any(),
+        array(py, out.alpha, &[h, w])?.into_any(),
+        array(py, out.normal, &[h, w, 3])?.into_any(),
+        array(py, out.depth, &[h, w])?.into_any(),
+    ];
+    if centre_hits {
+        outputs.push(array(py, out.centre_face, &[h, w])?.into_any());
+        outputs.push(array(py, out.centre_bary, &[h, w, 2])?.into_any());
+        outputs.push(array(py, out.centre_t, &[h, w])?.into_any());
+    } else {
+        outputs.extend([
+            py.None().into_bound(py),
+            py.None().into_bound(py),
+            py.None().into_bound(py),
+        ]);
+    }
+    PyTuple::new(py, outputs)
 }

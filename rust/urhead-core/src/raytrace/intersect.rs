@@ -42,15 +42,35 @@ pub fn intersect_triangle(
     t_min: f32,
     t_max: f32,
 ) -> Option<TriHit> {
-    let e1 = sub(p[1], p[0]);
-    let e2 = sub(p[2], p[0]);
+    intersect_edges(origin, dir, &triangle_edges(p), t_min, t_max)
+}
+
+/// A triangle as its first corner and the edges to the other two, `[p0, p1 − p0,
+/// p2 − p0]`: what the intersection test needs, precomputed once per frame.
+pub type EdgeTri = [[f32; 3]; 3];
+
+#[inline]
+pub fn triangle_edges(p: &[[f32; 3]; 3]) -> EdgeTri {
+    [p[0], sub(p[1], p[0]), sub(p[2], p[0])]
+}
+
+/// [`intersect_triangle`] on a triangle given by [`triangle_edges`] (the same result).
+#[inline]
+pub fn intersect_edges(
+    origin: [f32; 3],
+    dir: [f32; 3],
+    tri: &EdgeTri,
+    t_min: f32,
+    t_max: f32,
+) -> Option<TriHit> {
+    let [p0, e1, e2] = *tri;
     let pvec = cross(dir, e2);
     let det = dot(e1, pvec);
     if !(det != 0.0 && det.is_finite()) {
         return None;
     }
     let inv = 1.0 / det;
-    let tvec = sub(origin, p[0]);
+    let tvec = sub(origin, p0);
     let u = dot(tvec, pvec) * inv;
     if !((0.0..=1.0).contains(&u)) {
         return None;

@@ -57,34 +57,50 @@ pub fn value_noise(p: [f32; 3], seed: u32) -> f32 {
     lerp(lerp(x00, x10, f[1]), lerp(x01, x11, f[1]), f[2])
 }
 
+/// Largest pore radius (0.18 + 0.17) plus a margin: a pore of a neighbouring cell can
+/// reach `p` only when `p` lies closer than this to the face the two cells share.
+const PORE_REACH: f32 = 0.36;
+
 /// Pore darkening in [0, 1] at `p` (cells of size 1): each cell holds a pore of random
 /// position, radius and depth with probability ~0.7; 0 between pores.
 pub fn pores(p: [f32; 3], seed: u32) -> f32 {
     let c = p.map(|x| x.floor() as i32);
+    // Only the neighbours whose pores can reach `p`: ~5 cells instead of 27, same result.
+    let reach = |a: usize| {
+        let f = p[a] - c[a] as f32;
+        (if f < PORE_REACH { -1 } else { 0 })..=(if f > 1.0 - PORE_REACH { 1 } else { 0 })
+    };
     let mut depth = 0.0f32;
-    for dz in -1..=1 {
-        for dy in -1..=1 {
-            for dx in -1..=1 {
-                let (i, j, k) = (c[0] + dx, c[1] + dy, c[2] + dz);
-                let h = hash3(i, j, k, seed);
-                if unit(h) > 0.7 {
-                    continue;
-                }
-                let centre = [
-                    i as f32 + unit(hash(h ^ 0x68e3_1da4)),
-                    j as f32 + unit(hash(h ^ 0xb529_7a4d)),
-                    k as f32 + unit(hash(h ^ 0x1b56_c4e9)),
-                ];
-                let radius = 0.18 + 0.17 * unit(hash(h ^ 0x7f4a_7c15));
-                let d2 = (0..3).map(|a| (p[a] - centre[a]).powi(2)).sum::<f32>();
-                if d2 < radius * radius {
-                    let s = 1.0 - smoothstep(0.3 * radius, radius, d2.sqrt());
-                    depth = depth.max(s * (0.5 + 0.5 * unit(hash(h ^ 0x2545_f491))));
-                }
+    for dz in reach(2) {
+        for dy in reach(1) {
+            for dx in reach(0) {
+                depth = depth.max(pore_cell(p, [c[0] + dx, c[1] + dy, c[2] + dz], seed));
             }
         }
     }
     depth
+}
+
+/// The darkening at `p` from the pore of cell `(i, j, k)` (0 outside it or without one).
+#[inline]
+fn pore_cell(p: [f32; 3], [i, j, k]: [i32; 3], seed: u32) -> f32 {
+    let h = hash3(i, j, k, seed);
+    if unit(h) > 0.7 {
+        return 0.0;
+    }
+    let centre = [
+        i as f32 + unit(hash(h ^ 0x68e3_1da4)),
+        j as f32 + unit(hash(h ^ 0xb529_7a4d)),
+        k as f32 + unit(hash(h ^ 0x1b56_c4e9)),
+    ];
+    let radius = 0.18 + 0.17 * unit(hash(h ^ 0x7f4a_7c15));
+    let d2 = (0..3).map(|a| (p[a] - centre[a]).powi(2)).sum::<f32>();
+    if d2 < radius * radius {
+        let s = 1.0 - smoothstep(0.3 * radius, radius, d2.sqrt());
+        s * (0.5 + 0.5 * unit(hash(h ^ 0x2545_f491)))
+    } else {
+        0.0
+    }
 }
 
 /// A capsule of colour in solid coordinates. `pattern` 0: flat colour; 1: an iris, whose
@@ -277,6 +293,28 @@ mod tests {
             let q = pores(p, 9);
             assert!((0.0..=1.0).contains(&q));
         }
+    }
+
+    #[test]
+    fn pores_match_a_search_of_all_27_cells() {
+        let mut rng = crate::testing::Rng::new(4);
+        let mut dark = 0;
+        for _ in 0..20_000 {
+            // Large coordinates too (solid positions over a ~1e-3 pore size reach ~500).
+            let p = [0, 1, 2].map(|_| rng.uniform(-600.0, 600.0) as f32);
+            let c = p.map(|x| x.floor() as i32);
+            let mut all = 0.0f32;
+            for dz in -1..=1 {
+                for dy in -1..=1 {
+                    for dx in -1..=1 {
+                        all = all.max(pore_cell(p, [c[0] + dx, c[1] + dy, c[2] + dz], 7));
+                    }
+                }
+            }
+            assert_eq!(pores(p, 7).to_bits(), all.to_bits(), "at {p:?}");
+            dark += usize::from(all > 0.0);
+        }
+        assert!(dark > 500, "only {dark} points in a pore");
     }
 
     #[test]

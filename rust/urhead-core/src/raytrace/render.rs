@@ -27,6 +27,9 @@ pub struct RenderSettings {
     pub edge_samples_per_side: u32,
     /// Trace shadow rays towards the key light.
     pub shadows: bool,
+    /// Also trace the exact ray through each pixel centre for the `centre_*` outputs
+    /// (one more ray per pixel); off, those outputs are empty.
+    pub centre_hits: bool,
     /// Colour behind the scene (the RGB output is composited over it).
     pub background: [f32; 3],
     /// Seed of the sample jitter and light sampling.
@@ -47,7 +50,8 @@ pub struct RenderOutput {
     /// (H, W) linear view-space depth (camera z), mean over the samples that hit; 0 where
     /// none did.
     pub depth: Vec<f32>,
-    /// (H, W) face hit by the ray through the pixel centre, −1 for none.
+    /// (H, W) face hit by the ray through the pixel centre, −1 for none. This and the
+    /// next two are empty unless `centre_hits` was set.
     pub centre_face: Vec<i32>,
     /// (H, W, 2) barycentrics (u, v) of vertices 1 and 2 of that face (0 for none).
     pub centre_bary: Vec<f32>,
@@ -55,10 +59,13 @@ pub struct RenderOutput {
     pub centre_t: Vec<f32>,
 }
 
-/// What one primary ray sees.
-struct Sample {
-    color: [f32; 3],
-    hit: Option<(usize, TriHit, [f32; 3], f32)>, // face, hit, world normal, depth
+/// One primary ray of a pixel (from the eye) and what it hit.
+struct Traced {
+    /// Sample index within the pixel's `n × n` pattern.
+    k: u32,
+    dir: [f32; 3],
+    /// (face, hit, hit point, camera depth).
+    hit: Option<(usize, TriHit, [f32; 3], f32)>,
 }
 
 struct Rig<'a> {
@@ -122,10 +129,15 @@ pub fn render(scene: &Scene, camera: &Camera, settings: RenderSettings) -> Resul
         alpha: vec![0.0; pixels],
         normal: vec![0.0; pixels * 3],
         depth: vec![0.0; pixels],
-        centre_face: vec![-1; pixels],
-        centre_bary: vec![0.0; pixels * 2],
-        centre_t: vec![0.0; pixels],
+        centre_face: Vec::new(),
+        centre_bary: Vec::new(),
+        centre_t: Vec::new(),
     };
+    if settings.centre_hits {
+        out.centre_face = vec![-1; pixels];
+        out.centre_bary = vec![0.0; pixels * 2];
+        out.centre_t = vec![0.0; pixels];
+    }
     for tile in tiles {
         for (k, &(x, y)) in tile.coords.iter().enumerate() {
             let p = y * w + x;
@@ -133,9 +145,11 @@ pub fn render(scene: &Scene, camera: &Camera, settings: RenderSettings) -> Resul
             out.normal[p * 3..p * 3 + 3].copy_from_slice(&tile.normal[k]);
             out.alpha[p] = tile.alpha[k];
             out.depth[p] = tile.depth[k];
-            out.centre_face[p] = tile.centre_face[k];
-            out.centre_bary[p * 2..p * 2 + 2].copy_from_slice(&tile.centre_bary[k]);
-            out.centre_t[p] = tile.centre_t[k];
+            if settings.centre_hits {
+                out.centre_face[p] = tile.centre_face[k];
+                out.centre_bary[p * 2..p * 2 + 2].copy_from_slice(&tile.centre_bary[k]);
+                out.centre_t[p] = tile.centre_t[k];
+            }
         }
     }
     Ok(out)
@@ -148,19 +162,20 @@ struct PixelAcc {
     hits: usize,
     depth: f32,
     count: usize,
-    /// (min, max) material id and camera depth over the hits.
-    materials: (i32, i32),
-    depths: (f32, f32),
 }
 
-impl PixelAcc {
-    /// All samples missed, or all hit one material within a 1 % depth spread.
-    fn uniform(&self) -> bool {
-        self.hits == 0
-            || (self.hits == self.count
-                && self.materials.0 == self.materials.1
-                && self.depths.1 - self.depths.0 <= 0.01 * self.depths.0)
+/// All rays missed, or all hit one material within a 1 % depth spread.
+fn uniform(rays: &[Traced], face_material: &[i32]) -> bool {
+    let mut materials = (i32::MAX, i32::MIN);
+    let mut depths = (f32::INFINITY, 0.0f32);
+    let mut hits = 0;
+    for (face, _, _, z) in rays.iter().filter_map(|r| r.hit) {
+        let m = face_material[face];
+        materials = (materials.0.min(m), materials.1.max(m));
+        depths = (depths.0.min(z), depths.1.max(z));
+        hits += 1;
     }
+    hits == 0 || (hits == rays.len() && materials.0 == materials.1 && depths.1 - depths.0 <= 0.01 * depths.0)
 }
 
 #[derive(Default)]
@@ -179,24 +194,28 @@ impl Rig<'_> {
     fn tile(&self, x0: usize, y0: usize) -> TileOut {
         let (w, h) = (self.camera.width as usize, self.camera.height as usize);
         let mut out = TileOut::default();
+        let mut rays = Vec::new();
         for y in y0..(y0 + TILE).min(h) {
             for x in x0..(x0 + TILE).min(w) {
-                self.pixel(x, y, &mut out);
+                self.pixel(x, y, &mut rays, &mut out);
             }
         }
         out
     }
 
-    fn pixel(&self, x: usize, y: usize, out: &mut TileOut) {
+    /// Traces the pixel's `n × n` rays; where they disagree (and the edge pattern is
+    /// larger), traces the `m × m` edge pattern instead. Only the rays kept are shaded.
+    fn pixel(&self, x: usize, y: usize, rays: &mut Vec<Traced>, out: &mut TileOut) {
         let pixel_id =
             (y as u32).wrapping_mul(0x9e37_79b9) ^ (x as u32) ^ self.settings.seed.wrapping_mul(0x85eb_ca6b);
-        let first = self.pixel_samples(x, y, pixel_id, self.settings.samples_per_side as usize);
+        let mut side = self.settings.samples_per_side;
+        self.trace_pixel(x, y, pixel_id, side, rays);
         let edge = self.settings.edge_samples_per_side;
-        let acc = if edge > self.settings.samples_per_side && !first.uniform() {
-            self.pixel_samples(x, y, pixel_id, edge as usize)
-        } else {
-            first
-        };
+        if edge > side && !uniform(rays, self.scene.inputs.face_material) {
+            side = edge;
+            self.trace_pixel(x, y, pixel_id, side, rays);
+        }
+        let acc = self.shade_pixel(rays, pixel_id, side);
         let PixelAcc {
             color,
             normal,
@@ -212,6 +231,9 @@ impl Rig<'_> {
         out.depth.push(if hits > 0 { depth / hits as f32 } else { 0.0 });
         let cam_normal = normalize(self.to_camera_dir(normal));
         out.normal.push(if hits > 0 { cam_normal } else { [0.0; 3] });
+        if !self.settings.centre_hits {
+            return;
+        }
         // The exact centre ray, for the geometric outputs.
         let (origin, dir, t_min, t_max) = self.primary_ray(x as f32 + 0.5, y as f32 + 0.5);
         match self.scene.closest_hit(origin, dir, t_min, t_max) {
@@ -228,20 +250,13 @@ impl Rig<'_> {
         }
     }
 
-    /// `n × n` stratified samples of pixel (x, y), accumulated.
-    fn pixel_samples(&self, x: usize, y: usize, pixel_id: u32, n: usize) -> PixelAcc {
-        let mut acc = PixelAcc {
-            color: [0.0; 3],
-            normal: [0.0; 3],
-            hits: 0,
-            depth: 0.0,
-            count: n * n,
-            materials: (i32::MAX, i32::MIN),
-            depths: (f32::INFINITY, 0.0),
-        };
+    /// The `n × n` stratified primary rays of pixel (x, y) and their closest hits, into
+    /// `rays` (cleared first).
+    fn trace_pixel(&self, x: usize, y: usize, pixel_id: u32, n: u32, rays: &mut Vec<Traced>) {
+        rays.clear();
         for j in 0..n {
             for i in 0..n {
-                let k = (j * n + i) as u32;
+                let k = j * n + i;
                 let (ox, oy) = if n == 1 {
                     (0.5, 0.5)
                 } else {
@@ -251,20 +266,43 @@ impl Rig<'_> {
                         (j as f32 + unit(hash(h))) / n as f32,
                     )
                 };
-                let s = self.sample(x as f32 + ox, y as f32 + oy, pixel_id, k, n as u32);
+                let (origin, dir, t_min, t_max) = self.primary_ray(x as f32 + ox, y as f32 + oy);
+                let hit = self
+                    .scene
+                    .closest_hit(origin, dir, t_min, t_max)
+                    .map(|(face, hit)| {
+                        let p = [0, 1, 2].map(|c| origin[c] + hit.t * dir[c]);
+                        (face, hit, p, dot(self.rot[2], sub(p, self.eye)))
+                    });
+                rays.push(Traced { k, dir, hit });
+            }
+        }
+    }
+
+    /// Shades the traced rays of a pixel (`side × side` of them) and accumulates them.
+    fn shade_pixel(&self, rays: &[Traced], pixel_id: u32, side: u32) -> PixelAcc {
+        let mut acc = PixelAcc {
+            color: [0.0; 3],
+            normal: [0.0; 3],
+            hits: 0,
+            depth: 0.0,
+            count: rays.len(),
+        };
+        for ray in rays {
+            let Some((face, hit, p, z)) = ray.hit else {
                 for c in 0..3 {
-                    acc.color[c] += s.color[c];
+                    acc.color[c] += self.settings.background[c];
                 }
-                if let Some((face, _, nrm, z)) = s.hit {
-                    acc.hits += 1;
-                    acc.depth += z;
-                    for c in 0..3 {
-                        acc.normal[c] += nrm[c];
-                    }
-                    let m = self.scene.inputs.face_material[face];
-                    acc.materials = (acc.materials.0.min(m), acc.materials.1.max(m));
-                    acc.depths = (acc.depths.0.min(z), acc.depths.1.max(z));
-                }
+                continue;
+            };
+            let (color, nrm) = self.shade(ray.dir, face, &hit, p, pixel_id, ray.k, side);
+            for c in 0..3 {
+                acc.color[c] += color[c];
+            }
+            acc.hits += 1;
+            acc.depth += z;
+            for c in 0..3 {
+                acc.normal[c] += nrm[c];
             }
         }
         acc
@@ -286,22 +324,25 @@ impl Rig<'_> {
         (self.eye, normalize(d_world), c.near * len, c.far * len)
     }
 
-    fn sample(&self, px: f32, py: f32, pixel_id: u32, k: u32, side: u32) -> Sample {
-        let (origin, dir, t_min, t_max) = self.primary_ray(px, py);
-        let Some((face, hit)) = self.scene.closest_hit(origin, dir, t_min, t_max) else {
-            return Sample {
-                color: self.settings.background,
-                hit: None,
-            };
-        };
+    /// (colour, world shading normal) of a primary ray along `dir` hitting `face` at `p`.
+    fn shade(
+        &self,
+        dir: [f32; 3],
+        face: usize,
+        hit: &TriHit,
+        p: [f32; 3],
+        pixel_id: u32,
+        k: u32,
+        side: u32,
+    ) -> ([f32; 3], [f32; 3]) {
         let scene = self.scene;
         let inputs = &scene.inputs;
-        let tri = scene.triangle(face);
+        let tri = &scene.triangle(face);
         let mut geo = normalize(cross(sub(tri[1], tri[0]), sub(tri[2], tri[0])));
         if dot(geo, dir) > 0.0 {
             geo = geo.map(|x| -x);
         }
-        let mut n: [f32; 3] = scene.interpolate::<3>(inputs.normals, face, &hit);
+        let mut n: [f32; 3] = scene.interpolate::<3>(inputs.normals, face, hit);
         n = normalize(n);
         if dot(n, n) < 0.5 {
             n = geo;
@@ -309,18 +350,17 @@ impl Rig<'_> {
         if dot(n, dir) > 0.0 {
             n = n.map(|x| -x); // seen from behind (thin ribbons, open meshes)
         }
-        let p = [0, 1, 2].map(|c| origin[c] + hit.t * dir[c]);
         let material = scene.materials[inputs.face_material[face] as usize];
 
-        let mut albedo: [f32; 3] = scene.interpolate::<3>(inputs.colors, face, &hit);
+        let mut albedo: [f32; 3] = scene.interpolate::<3>(inputs.colors, face, hit);
         if material.textured {
             if let (Some(uvs), Some(tex)) = (inputs.uvs, inputs.texture) {
-                let uv: [f32; 2] = scene.interpolate::<2>(uvs, face, &hit);
+                let uv: [f32; 2] = scene.interpolate::<2>(uvs, face, hit);
                 let t = tex.sample(uv);
                 albedo = [0, 1, 2].map(|c| albedo[c] * t[c]);
             }
         }
-        let solid: [f32; 3] = scene.interpolate::<3>(inputs.solid, face, &hit);
+        let solid: [f32; 3] = scene.interpolate::<3>(inputs.solid, face, hit);
         let mut shine = 1.0;
         if material.mottle_strength > 0.0 {
             let q = solid.map(|x| x / material.mottle_size);
@@ -365,11 +405,7 @@ impl Rig<'_> {
             let ambient = light.ambient_down[c] + (light.ambient_up[c] - light.ambient_down[c]) * sky;
             albedo[c] * (light.color[c] * diffuse + ambient) + light.color[c] * specular
         });
-        let depth = dot(self.rot[2], sub(p, self.eye));
-        Sample {
-            color,
-            hit: Some((face, hit, n, depth)),
-        }
+        (color, n)
     }
 
     /// A direction in the light's cone (uniform over the cone's cap), stratified by the

@@ -1,15 +1,10 @@
 //! A validated scene: triangles with per-vertex attributes, materials, decals and a light,
-//! plus the BVH (obvhs' compressed wide BVH8) built over the triangles.
+//! plus the BVH over the triangles (built for the scene, or a caller's tree refit to it).
 
-use std::time::Duration;
+use std::borrow::Cow;
 
-use obvhs::cwbvh::builder::build_cwbvh_from_tris;
-use obvhs::cwbvh::CwBvh;
-use obvhs::ray::{Ray, RayHit};
-use obvhs::triangle::Triangle;
-use obvhs::BvhBuildParams;
-
-use super::intersect::{intersect_triangle, TriHit};
+use super::bvh::{mesh_triangles, Tri, TriangleBvh};
+use super::intersect::TriHit;
 use super::procedural::{normalize, Decal, DecalGrid, DECAL_FLOATS};
 use crate::error::{check_finite, check_indices, check_len, Error, Result};
 
@@ -109,109 +104,46 @@ pub struct Scene<'a> {
     pub inputs: SceneInputs<'a>,
     pub materials: Vec<Material>,
     pub decals: DecalGrid,
-    tris: Vec<[[f32; 3]; 3]>,
-    bvh: CwBvh,
+    bvh: Cow<'a, TriangleBvh>,
 }
-
-/// Largest accepted vertex or face count (index arithmetic stays in u32).
-pub const MAX_ELEMENTS: usize = 1 << 30;
 
 impl<'a> Scene<'a> {
     /// Validates every array (shapes, finiteness, index ranges, material values) and builds
     /// the BVH. Errors name the argument.
     pub fn new(inputs: SceneInputs<'a>) -> Result<Self> {
-        let nv = inputs.vertices.len() / 3;
-        let nf = inputs.faces.len() / 3;
-        if nv > MAX_ELEMENTS || nf > MAX_ELEMENTS {
-            return Err(Error::TooLarge {
-                what: "scene vertices/faces",
-                requested: nv.max(nf) as u128,
-                limit: MAX_ELEMENTS as u128,
-            });
-        }
-        check_len("vertices", inputs.vertices, nv * 3, "(V, 3)")?;
-        check_len("faces", inputs.faces, nf * 3, "(F, 3)")?;
-        check_len("normals", inputs.normals, nv * 3, "(V, 3) like vertices")?;
-        check_len("colors", inputs.colors, nv * 3, "(V, 3) like vertices")?;
-        check_len("solid", inputs.solid, nv * 3, "(V, 3) like vertices")?;
-        check_len("face_material", inputs.face_material, nf, "(F,) like faces")?;
-        check_finite("vertices", inputs.vertices)?;
-        check_finite("normals", inputs.normals)?;
-        check_finite("colors", inputs.colors)?;
-        check_finite("solid", inputs.solid)?;
-        check_indices("faces", inputs.faces, 0, nv as i64)?;
-        let nm = inputs.materials.len() / MATERIAL_FLOATS;
-        check_len(
-            "materials",
-            inputs.materials,
-            nm * MATERIAL_FLOATS,
-            "(M, 8): specular, shininess, wrap, pore_strength, pore_size, mottle_strength, mottle_size, textured",
-        )?;
-        check_finite("materials", inputs.materials)?;
-        check_indices("face_material", inputs.face_material, 0, nm as i64)?;
-        let materials = parse_materials(inputs.materials)?;
-        if materials.iter().any(|m| m.textured) {
-            let uvs = inputs.uvs.ok_or_else(|| Error::Invalid {
-                arg: "uvs",
-                reason: "a textured material needs uvs and a texture".into(),
-            })?;
-            check_len("uvs", uvs, nv * 2, "(V, 2) like vertices")?;
-            check_finite("uvs", uvs)?;
-            let tex = inputs.texture.ok_or_else(|| Error::Invalid {
-                arg: "texture",
-                reason: "a textured material needs a texture".into(),
-            })?;
-            if tex.width == 0 || tex.height == 0 {
-                return Err(Error::Invalid {
-                    arg: "texture",
-                    reason: "must be at least 1×1".into(),
-                });
-            }
-            check_len("texture", tex.data, tex.width * tex.height * 3, "(TH, TW, 3)")?;
-            check_finite("texture", tex.data)?;
-        }
-        let decals = parse_decals(inputs.decals)?;
-        check_light(&inputs.light)?;
-
-        let vert = |i: i32| {
-            let i = i as usize * 3;
-            [inputs.vertices[i], inputs.vertices[i + 1], inputs.vertices[i + 2]]
-        };
-        let tris: Vec<[[f32; 3]; 3]> = inputs
-            .faces
-            .chunks_exact(3)
-            .map(|f| [vert(f[0]), vert(f[1]), vert(f[2])])
-            .collect();
-        let bvh_tris: Vec<Triangle> = tris
-            .iter()
-            .map(|t| Triangle {
-                v0: t[0].into(),
-                v1: t[1].into(),
-                v2: t[2].into(),
-            })
-            .collect();
-        // Single-threaded build (obvhs without its `parallel` feature): the same tree for
-        // the same triangles, which keeps tie-breaking between equal hits deterministic.
-        let bvh = if tris.is_empty() {
-            CwBvh::default()
-        } else {
-            build_cwbvh_from_tris(&bvh_tris, BvhBuildParams::fast_build(), &mut Duration::default())
-        };
+        let (materials, decals, tris) = validate(&inputs)?;
+        // Single-threaded build: the same tree for the same triangles, which keeps
+        // tie-breaking between equal hits deterministic.
+        let bvh = Cow::Owned(TriangleBvh::build(&tris));
         Ok(Self {
             inputs,
             materials,
             decals: DecalGrid::new(decals),
-            tris,
             bvh,
         })
     }
 
+    /// Like [`Scene::new`], but refits `bvh` (built over as many triangles) to the scene
+    /// instead of building one: far cheaper for a mesh whose topology never changes. The
+    /// tree then depends only on what `bvh` was built from, never on earlier refits.
+    pub fn with_bvh(inputs: SceneInputs<'a>, bvh: &'a mut TriangleBvh) -> Result<Self> {
+        let (materials, decals, tris) = validate(&inputs)?;
+        bvh.refit(&tris)?;
+        Ok(Self {
+            inputs,
+            materials,
+            decals: DecalGrid::new(decals),
+            bvh: Cow::Borrowed(bvh),
+        })
+    }
+
     pub fn num_faces(&self) -> usize {
-        self.tris.len()
+        self.inputs.faces.len() / 3
     }
 
     /// The closest hit along `origin + t·dir` (unit `dir`) with `t` in `(t_min, t_max)`:
     /// (face, hit). Ties keep the first face the traversal meets (a fixed order).
+    #[inline]
     pub fn closest_hit(
         &self,
         origin: [f32; 3],
@@ -219,39 +151,23 @@ impl<'a> Scene<'a> {
         t_min: f32,
         t_max: f32,
     ) -> Option<(usize, TriHit)> {
-        if self.tris.is_empty() {
-            return None;
-        }
-        let ray = Ray::new(origin.into(), dir.into(), t_min, t_max);
-        let mut hit = RayHit::none();
-        let mut best: Option<(usize, TriHit)> = None;
-        self.bvh.ray_traverse(ray, &mut hit, |r, id| {
-            let face = self.bvh.primitive_indices[id] as usize;
-            match intersect_triangle(origin, dir, &self.tris[face], t_min, r.tmax) {
-                Some(h) => {
-                    best = Some((face, h));
-                    h.t
-                }
-                None => f32::INFINITY,
-            }
-        });
-        best
+        self.bvh.closest_hit(origin, dir, t_min, t_max)
     }
 
     /// Whether anything lies along `origin + t·dir` for `t` in `(t_min, t_max)`.
+    #[inline]
     pub fn occluded(&self, origin: [f32; 3], dir: [f32; 3], t_min: f32, t_max: f32) -> bool {
-        if self.tris.is_empty() {
-            return false;
-        }
-        let ray = Ray::new(origin.into(), dir.into(), t_min, t_max);
-        !self.bvh.ray_traverse_miss(ray, |_, id| {
-            let face = self.bvh.primitive_indices[id] as usize;
-            intersect_triangle(origin, dir, &self.tris[face], t_min, t_max).map_or(f32::INFINITY, |h| h.t)
-        })
+        self.bvh.occluded(origin, dir, t_min, t_max)
     }
 
-    pub fn triangle(&self, face: usize) -> &[[f32; 3]; 3] {
-        &self.tris[face]
+    /// The corners of `face`.
+    pub fn triangle(&self, face: usize) -> Tri {
+        let v = self.inputs.vertices;
+        let f = &self.inputs.faces[face * 3..face * 3 + 3];
+        [0, 1, 2].map(|k| {
+            let i = f[k] as usize * 3;
+            [v[i], v[i + 1], v[i + 2]]
+        })
     }
 
     /// Barycentric interpolation of a per-vertex attribute with `D` floats per vertex.
@@ -268,6 +184,54 @@ impl<'a> Scene<'a> {
         }
         out
     }
+}
+
+/// Checks every array of `inputs`; returns the parsed materials and decals and the
+/// triangles' corner positions.
+fn validate(inputs: &SceneInputs) -> Result<(Vec<Material>, Vec<Decal>, Vec<Tri>)> {
+    let tris = mesh_triangles(inputs.vertices, inputs.faces)?;
+    let (nv, nf) = (inputs.vertices.len() / 3, inputs.faces.len() / 3);
+    check_len("normals", inputs.normals, nv * 3, "(V, 3) like vertices")?;
+    check_len("colors", inputs.colors, nv * 3, "(V, 3) like vertices")?;
+    check_len("solid", inputs.solid, nv * 3, "(V, 3) like vertices")?;
+    check_len("face_material", inputs.face_material, nf, "(F,) like faces")?;
+    check_finite("normals", inputs.normals)?;
+    check_finite("colors", inputs.colors)?;
+    check_finite("solid", inputs.solid)?;
+    let nm = inputs.materials.len() / MATERIAL_FLOATS;
+    check_len(
+        "materials",
+        inputs.materials,
+        nm * MATERIAL_FLOATS,
+        "(M, 8): specular, shininess, wrap, pore_strength, pore_size, mottle_strength, mottle_size, textured",
+    )?;
+    check_finite("materials", inputs.materials)?;
+    check_indices("face_material", inputs.face_material, 0, nm as i64)?;
+    let materials = parse_materials(inputs.materials)?;
+    if materials.iter().any(|m| m.textured) {
+        let uvs = inputs.uvs.ok_or_else(|| Error::Invalid {
+            arg: "uvs",
+            reason: "a textured material needs uvs and a texture".into(),
+        })?;
+        check_len("uvs", uvs, nv * 2, "(V, 2) like vertices")?;
+        check_finite("uvs", uvs)?;
+        let tex = inputs.texture.ok_or_else(|| Error::Invalid {
+            arg: "texture",
+            reason: "a textured material needs a texture".into(),
+        })?;
+        if tex.width == 0 || tex.height == 0 {
+            return Err(Error::Invalid {
+                arg: "texture",
+                reason: "must be at least 1×1".into(),
+            });
+        }
+        check_len("texture", tex.data, tex.width * tex.height * 3, "(TH, TW, 3)")?;
+        check_finite("texture", tex.data)?;
+    }
+    let decals = parse_decals(inputs.decals)?;
+    check_light(&inputs.light)?;
+
+    Ok((materials, decals, tris))
 }
 
 fn parse_materials(table: &[f32]) -> Result<Vec<Material>> {
