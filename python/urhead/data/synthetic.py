@@ -159,7 +159,7 @@ def synthesize(
     def scene(t: int) -> _Scene:
         betas = torch.from_numpy(np.concatenate([look.shape, perf.expr[t]])[None])
         skinned = _lbs(tables, betas, perf.pose[t], perf.transl[t])
-        return renderer.scene(skinned, {k: float(v[t]) for k, v in perf.activation.items()})
+        return renderer.scene(skinned, {k: float(v[t]) for k, v in perf.activation.items()}, t)
 
     def flame(t: int) -> dict:
         return {
@@ -229,7 +229,8 @@ def _lbs(tables, betas, pose, transl):
 
 
 class _Scene(NamedTuple):
-    """One frame's triangles with their per-vertex attributes, ready to trace."""
+    """One frame's triangles with their per-vertex attributes, ready to trace, and the
+    BVH built over them when the frame starts a new tree."""
 
     vertices: np.ndarray
     faces: np.ndarray
@@ -237,14 +238,16 @@ class _Scene(NamedTuple):
     colors: np.ndarray
     solid: np.ndarray
     face_material: np.ndarray
+    bvh: TriangleBvh | None
 
 
 class _FrameRenderer:
     """Per frame: subdivide and displace the skinned head, attach strands, ray-trace.
 
-    The BVH is built every ``BVH_REBUILD_EVERY`` frames from that frame's mesh and refit
-    in between (the topology never changes): frame t is traced with the tree of frame
-    ``t - t % BVH_REBUILD_EVERY`` refit to frame t, whatever rendered before it."""
+    The BVH is built every ``BVH_REBUILD_EVERY`` frames from that frame's mesh (with the
+    mesh, so off the tracing thread) and refit in between (the topology never changes):
+    frames rendered in order, frame t is traced with the tree of frame
+    ``t - t % BVH_REBUILD_EVERY`` refit to frame t, whatever the timing."""
 
     BVH_REBUILD_EVERY = 25
 
@@ -256,7 +259,7 @@ class _FrameRenderer:
         self.triangle_count = 0
         self._bvh: TriangleBvh | None = None
 
-    def scene(self, skinned, activation: dict) -> _Scene:
+    def scene(self, skinned, activation: dict, t: int) -> _Scene:
         verts, rotations = skinned
         look = self.look
         coarse = verts.astype(np.float64)
@@ -275,12 +278,16 @@ class _FrameRenderer:
         for v, f, n, c, s, m in parts:
             pieces.append((v, f + offset, n, c, s, m))
             offset += len(v)
-        return _Scene(*(np.concatenate(x) for x in zip(*pieces, strict=True)))
+        arrays = [np.concatenate(x) for x in zip(*pieces, strict=True)]
+        rebuild = t % self.BVH_REBUILD_EVERY == 0
+        return _Scene(*arrays, bvh=TriangleBvh(arrays[0], arrays[1]) if rebuild else None)
 
     def render(self, scene: _Scene, t: int):
         """(rgb (H, W, 3), alpha (H, W), camera-space normals (H, W, 3)) of frame t."""
-        if t % self.BVH_REBUILD_EVERY == 0 or self._bvh is None:
-            self._bvh = TriangleBvh(scene.vertices, scene.faces)
+        if scene.bvh is not None:
+            self._bvh = scene.bvh
+        if self._bvh is None:
+            raise RuntimeError("the first frame rendered must start a BVH")
         self.triangle_count = len(scene.faces)
         out = raytrace(
             scene.vertices,
