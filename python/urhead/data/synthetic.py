@@ -161,6 +161,9 @@ def synthesize(
         skinned = _lbs(tables, betas, perf.pose[t], perf.transl[t])
         return renderer.scene(skinned, {k: float(v[t]) for k, v in perf.activation.items()}, t)
 
+    def write(t: int, rgb: np.ndarray, mask: np.ndarray, normals: np.ndarray) -> None:
+        writer.add_frame(t, np.clip(rgb, 0, 1), mask, flame(t), normals=normals)
+
     def flame(t: int) -> dict:
         return {
             "translation": transl_n[t][None],
@@ -193,11 +196,11 @@ def synthesize(
                 current = next_scene.result()
                 if t + 1 < config.frames:
                     next_scene = helper.submit(scene, t + 1)
-                image, mask, normals = renderer.render(current, t)
+                rgb, mask, normals = renderer.render(current, t)
                 if written is not None:
                     written.result()
                     frames.update()
-                written = helper.submit(writer.add_frame, t, image, mask, flame(t), normals=normals)
+                written = helper.submit(write, t, rgb, mask, normals)
             written.result()
             frames.update()
         meta = {
@@ -283,7 +286,8 @@ class _FrameRenderer:
         return _Scene(*arrays, bvh=TriangleBvh(arrays[0], arrays[1]) if rebuild else None)
 
     def render(self, scene: _Scene, t: int):
-        """(rgb (H, W, 3), alpha (H, W), camera-space normals (H, W, 3)) of frame t."""
+        """(rgb (H, W, 3), alpha (H, W), camera-space normals (H, W, 3)) of frame t; rgb
+        is not clipped (highlights may exceed 1)."""
         if scene.bvh is not None:
             self._bvh = scene.bvh
         if self._bvh is None:
@@ -308,7 +312,7 @@ class _FrameRenderer:
             centre_hits=False,
         )
         # The tracer's normals are already zero where no sample hit.
-        return np.clip(out.rgb, 0, 1), out.alpha, out.normal
+        return out.rgb, out.alpha, out.normal
 
     def _ribbons(self, strands: Strands, coarse, rotations):
         """Camera-facing ribbons along each strand; the normals at the two edges lean
