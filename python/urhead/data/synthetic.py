@@ -156,9 +156,11 @@ def synthesize(
     tables = head.lbs_tables(torch.float32)
     renderer = _FrameRenderer(look, camera, config)
 
-    def scene(t: int) -> _Scene:
+    def skin(t: int):
         betas = torch.from_numpy(np.concatenate([look.shape, perf.expr[t]])[None])
-        skinned = _lbs(tables, betas, perf.pose[t], perf.transl[t])
+        return _lbs(tables, betas, perf.pose[t], perf.transl[t])
+
+    def scene(t: int, skinned) -> _Scene:
         return renderer.scene(skinned, {k: float(v[t]) for k, v in perf.activation.items()}, t)
 
     def write(t: int, rgb: np.ndarray, mask: np.ndarray, normals: np.ndarray) -> None:
@@ -188,14 +190,16 @@ def synthesize(
         # A pipeline that keeps every core busy: while frame t is ray-traced (Rust, GIL
         # released, all threads), a helper thread builds frame t + 1's mesh and writes frame
         # t − 1. Frames are still made and written in order, each from its own inputs
-        # only, so the bytes do not depend on the timing.
+        # only, so the bytes do not depend on the timing. The skinning stays on this
+        # thread: its kernel shares the tracer's thread pool, where a job sent from the
+        # helper would wait for the whole trace.
         with ThreadPoolExecutor(max_workers=1) as helper, frames:
-            next_scene = helper.submit(scene, 0)
+            next_scene = helper.submit(scene, 0, skin(0))
             written = None
             for t in range(config.frames):
                 current = next_scene.result()
                 if t + 1 < config.frames:
-                    next_scene = helper.submit(scene, t + 1)
+                    next_scene = helper.submit(scene, t + 1, skin(t + 1))
                 rgb, mask, normals = renderer.render(current, t)
                 if written is not None:
                     written.result()
