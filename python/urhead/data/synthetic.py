@@ -156,10 +156,15 @@ def synthesize(
     tables = head.lbs_tables(torch.float32)
     renderer = _FrameRenderer(look, camera, config)
 
-    def scene(t: int) -> _Scene:
+    def skin(t: int):
         betas = torch.from_numpy(np.concatenate([look.shape, perf.expr[t]])[None])
-        skinned = _lbs(tables, betas, perf.pose[t], perf.transl[t])
-        return renderer.scene(skinned, {k: float(v[t]) for k, v in perf.activation.items()})
+        return _lbs(tables, betas, perf.pose[t], perf.transl[t])
+
+    def scene(t: int, skinned) -> _Scene:
+        return renderer.scene(skinned, {k: float(v[t]) for k, v in perf.activation.items()}, t)
+
+    def write(t: int, rgb: np.ndarray, mask: np.ndarray, normals: np.ndarray) -> None:
+        writer.add_frame(t, np.clip(rgb, 0, 1), mask, flame(t), normals=normals)
 
     def flame(t: int) -> dict:
         return {
@@ -185,19 +190,21 @@ def synthesize(
         # A pipeline that keeps every core busy: while frame t is ray-traced (Rust, GIL
         # released, all threads), a helper thread builds frame t + 1's mesh and writes frame
         # t − 1. Frames are still made and written in order, each from its own inputs
-        # only, so the bytes do not depend on the timing.
+        # only, so the bytes do not depend on the timing. The skinning stays on this
+        # thread: its kernel shares the tracer's thread pool, where a job sent from the
+        # helper would wait for the whole trace.
         with ThreadPoolExecutor(max_workers=1) as helper, frames:
-            next_scene = helper.submit(scene, 0)
+            next_scene = helper.submit(scene, 0, skin(0))
             written = None
             for t in range(config.frames):
                 current = next_scene.result()
                 if t + 1 < config.frames:
-                    next_scene = helper.submit(scene, t + 1)
-                image, mask, normals = renderer.render(current, t)
+                    next_scene = helper.submit(scene, t + 1, skin(t + 1))
+                rgb, mask, normals = renderer.render(current, t)
                 if written is not None:
                     written.result()
                     frames.update()
-                written = helper.submit(writer.add_frame, t, image, mask, flame(t), normals=normals)
+                written = helper.submit(write, t, rgb, mask, normals)
             written.result()
             frames.update()
         meta = {
@@ -229,7 +236,8 @@ def _lbs(tables, betas, pose, transl):
 
 
 class _Scene(NamedTuple):
-    """One frame's triangles with their per-vertex attributes, ready to trace."""
+    """One frame's triangles with their per-vertex attributes, ready to trace, and the
+    BVH built over them when the frame starts a new tree."""
 
     vertices: np.ndarray
     faces: np.ndarray
@@ -237,14 +245,16 @@ class _Scene(NamedTuple):
     colors: np.ndarray
     solid: np.ndarray
     face_material: np.ndarray
+    bvh: TriangleBvh | None
 
 
 class _FrameRenderer:
     """Per frame: subdivide and displace the skinned head, attach strands, ray-trace.
 
-    The BVH is built every ``BVH_REBUILD_EVERY`` frames from that frame's mesh and refit
-    in between (the topology never changes): frame t is traced with the tree of frame
-    ``t - t % BVH_REBUILD_EVERY`` refit to frame t, whatever rendered before it."""
+    The BVH is built every ``BVH_REBUILD_EVERY`` frames from that frame's mesh (with the
+    mesh, so off the tracing thread) and refit in between (the topology never changes):
+    frames rendered in order, frame t is traced with the tree of frame
+    ``t - t % BVH_REBUILD_EVERY`` refit to frame t, whatever the timing."""
 
     BVH_REBUILD_EVERY = 25
 
@@ -256,7 +266,7 @@ class _FrameRenderer:
         self.triangle_count = 0
         self._bvh: TriangleBvh | None = None
 
-    def scene(self, skinned, activation: dict) -> _Scene:
+    def scene(self, skinned, activation: dict, t: int) -> _Scene:
         verts, rotations = skinned
         look = self.look
         coarse = verts.astype(np.float64)
@@ -275,12 +285,17 @@ class _FrameRenderer:
         for v, f, n, c, s, m in parts:
             pieces.append((v, f + offset, n, c, s, m))
             offset += len(v)
-        return _Scene(*(np.concatenate(x) for x in zip(*pieces, strict=True)))
+        arrays = [np.concatenate(x) for x in zip(*pieces, strict=True)]
+        rebuild = t % self.BVH_REBUILD_EVERY == 0
+        return _Scene(*arrays, bvh=TriangleBvh(arrays[0], arrays[1]) if rebuild else None)
 
     def render(self, scene: _Scene, t: int):
-        """(rgb (H, W, 3), alpha (H, W), camera-space normals (H, W, 3)) of frame t."""
-        if t % self.BVH_REBUILD_EVERY == 0 or self._bvh is None:
-            self._bvh = TriangleBvh(scene.vertices, scene.faces)
+        """(rgb (H, W, 3), alpha (H, W), camera-space normals (H, W, 3)) of frame t; rgb
+        is not clipped (highlights may exceed 1)."""
+        if scene.bvh is not None:
+            self._bvh = scene.bvh
+        if self._bvh is None:
+            raise RuntimeError("the first frame rendered must start a BVH")
         self.triangle_count = len(scene.faces)
         out = raytrace(
             scene.vertices,
@@ -301,7 +316,7 @@ class _FrameRenderer:
             centre_hits=False,
         )
         # The tracer's normals are already zero where no sample hit.
-        return np.clip(out.rgb, 0, 1), out.alpha, out.normal
+        return out.rgb, out.alpha, out.normal
 
     def _ribbons(self, strands: Strands, coarse, rotations):
         """Camera-facing ribbons along each strand; the normals at the two edges lean

@@ -13,10 +13,12 @@ use std::time::Duration;
 use glam::Vec3A;
 use obvhs::aabb::Aabb;
 use obvhs::cwbvh::builder::build_cwbvh_from_tris;
+use obvhs::cwbvh::node::CwBvhNode;
 use obvhs::cwbvh::CwBvh;
 use obvhs::ray::{Ray, RayHit};
 use obvhs::triangle::Triangle;
 use obvhs::BvhBuildParams;
+use rayon::prelude::*;
 
 use super::intersect::{intersect_edges, triangle_edges, EdgeTri, TriHit};
 use crate::error::{check_finite, check_indices, check_len, Error, Result};
@@ -36,8 +38,8 @@ pub struct TriangleBvh {
     /// `primitive_indices[i]`), so a leaf's triangles sit side by side in memory, as
     /// corner and edges ready for the intersection test.
     ordered: Vec<EdgeTri>,
-    /// Node indices with every node after all of its descendants (a refit's order).
-    children_first: Vec<u32>,
+    /// Node indices by depth (the root alone first): a refit's order, deepest first.
+    levels: Vec<Vec<u32>>,
 }
 
 impl TriangleBvh {
@@ -50,7 +52,7 @@ impl TriangleBvh {
             return Self {
                 cwbvh: CwBvh::default(),
                 ordered: Vec::new(),
-                children_first: Vec::new(),
+                levels: Vec::new(),
             };
         }
         let triangles: Vec<Triangle> = tris
@@ -66,7 +68,7 @@ impl TriangleBvh {
             BvhBuildParams::medium_build(),
             &mut Duration::default(),
         );
-        let children_first = children_first_order(&cwbvh);
+        let levels = levels(&cwbvh);
         let ordered = cwbvh
             .primitive_indices
             .iter()
@@ -75,7 +77,7 @@ impl TriangleBvh {
         Self {
             cwbvh,
             ordered,
-            children_first,
+            levels,
         }
     }
 
@@ -145,62 +147,21 @@ impl TriangleBvh {
             return Ok(());
         }
         let bvh = &mut self.cwbvh;
-        for (slot, &p) in self.ordered.iter_mut().zip(&bvh.primitive_indices) {
-            *slot = triangle_edges(&tris[p as usize]);
-        }
+        self.ordered
+            .par_iter_mut()
+            .zip(bvh.primitive_indices.par_iter())
+            .for_each(|(slot, &p)| *slot = triangle_edges(&tris[p as usize]));
+        // Deepest level first; the nodes of a level only read the bounds of deeper ones.
         let mut bounds = vec![Aabb::empty(); bvh.nodes.len()];
-        for &n in &self.children_first {
-            let n = n as usize;
-            let mut node = bvh.nodes[n];
-            let mut child_bounds = [None; 8];
-            let mut internal_rank = 0;
-            for (slot, &meta) in node.child_meta.iter().enumerate() {
-                if meta == 0 {
-                    continue; // empty slot
-                }
-                child_bounds[slot] = Some(if node.imask & (1 << slot) != 0 {
-                    let child = node.child_base_idx as usize + internal_rank;
-                    internal_rank += 1;
-                    bounds[child]
-                } else {
-                    // Leaf: offset in the low 5 bits, count in unary in the high 3.
-                    let first = node.primitive_base_idx as usize + (meta & 0b1_1111) as usize;
-                    let count = (meta >> 5).count_ones() as usize;
-                    bvh.primitive_indices[first..first + count]
-                        .iter()
-                        .fold(Aabb::empty(), |b, &p| b.union(&tri_bounds(&tris[p as usize])))
-                });
+        for level in self.levels.iter().rev() {
+            let refit: Vec<(CwBvhNode, Aabb)> = level
+                .par_iter()
+                .map(|&n| refit_node(bvh.nodes[n as usize], &bounds, &bvh.primitive_indices, tris))
+                .collect();
+            for (&n, (node, node_bounds)) in level.iter().zip(refit) {
+                bvh.nodes[n as usize] = node;
+                bounds[n as usize] = node_bounds;
             }
-            let node_bounds = child_bounds
-                .iter()
-                .flatten()
-                .fold(Aabb::empty(), |a, b| a.union(b));
-            // obvhs' quantisation: a power-of-two cell per axis so 255 cells span the node.
-            let p = node_bounds.min;
-            let e = ((node_bounds.max - node_bounds.min).max(Vec3A::splat(1e-20)) * (1.0 / QUANT_MAX))
-                .log2()
-                .ceil()
-                .exp2();
-            let rcp_e = 1.0 / e;
-            node.p = p.into();
-            node.e = [e.x, e.y, e.z].map(|c| (c.to_bits() >> 23) as u8);
-            for (slot, b) in child_bounds.iter().enumerate() {
-                let Some(b) = b else { continue };
-                let lo = ((b.min - p) * rcp_e)
-                    .floor()
-                    .clamp(Vec3A::ZERO, Vec3A::splat(QUANT_MAX));
-                let hi = ((b.max - p) * rcp_e)
-                    .ceil()
-                    .clamp(Vec3A::ZERO, Vec3A::splat(QUANT_MAX));
-                node.child_min_x[slot] = lo.x as u8;
-                node.child_min_y[slot] = lo.y as u8;
-                node.child_min_z[slot] = lo.z as u8;
-                node.child_max_x[slot] = hi.x as u8;
-                node.child_max_y[slot] = hi.y as u8;
-                node.child_max_z[slot] = hi.z as u8;
-            }
-            bvh.nodes[n] = node;
-            bounds[n] = node_bounds;
         }
         bvh.total_aabb = bounds[0];
         Ok(())
@@ -234,6 +195,64 @@ pub fn mesh_triangles(vertices: &[f32], faces: &[i32]) -> Result<Vec<Tri>> {
 /// Largest accepted vertex or face count (index arithmetic stays in u32).
 pub const MAX_ELEMENTS: usize = 1 << 30;
 
+/// `node` with its child bounds recomputed from `bounds` (its internal children's, already
+/// refit) and its leaves' triangles; and its own bounds.
+fn refit_node(
+    mut node: CwBvhNode,
+    bounds: &[Aabb],
+    primitive_indices: &[u32],
+    tris: &[Tri],
+) -> (CwBvhNode, Aabb) {
+    let mut child_bounds = [None; 8];
+    let mut internal_rank = 0;
+    for (slot, &meta) in node.child_meta.iter().enumerate() {
+        if meta == 0 {
+            continue; // empty slot
+        }
+        child_bounds[slot] = Some(if node.imask & (1 << slot) != 0 {
+            let child = node.child_base_idx as usize + internal_rank;
+            internal_rank += 1;
+            bounds[child]
+        } else {
+            // Leaf: offset in the low 5 bits, count in unary in the high 3.
+            let first = node.primitive_base_idx as usize + (meta & 0b1_1111) as usize;
+            let count = (meta >> 5).count_ones() as usize;
+            primitive_indices[first..first + count]
+                .iter()
+                .fold(Aabb::empty(), |b, &p| b.union(&tri_bounds(&tris[p as usize])))
+        });
+    }
+    let node_bounds = child_bounds
+        .iter()
+        .flatten()
+        .fold(Aabb::empty(), |a, b| a.union(b));
+    // obvhs' quantisation: a power-of-two cell per axis so 255 cells span the node.
+    let p = node_bounds.min;
+    let e = ((node_bounds.max - node_bounds.min).max(Vec3A::splat(1e-20)) * (1.0 / QUANT_MAX))
+        .log2()
+        .ceil()
+        .exp2();
+    let rcp_e = 1.0 / e;
+    node.p = p.into();
+    node.e = [e.x, e.y, e.z].map(|c| (c.to_bits() >> 23) as u8);
+    for (slot, b) in child_bounds.iter().enumerate() {
+        let Some(b) = b else { continue };
+        let lo = ((b.min - p) * rcp_e)
+            .floor()
+            .clamp(Vec3A::ZERO, Vec3A::splat(QUANT_MAX));
+        let hi = ((b.max - p) * rcp_e)
+            .ceil()
+            .clamp(Vec3A::ZERO, Vec3A::splat(QUANT_MAX));
+        node.child_min_x[slot] = lo.x as u8;
+        node.child_min_y[slot] = lo.y as u8;
+        node.child_min_z[slot] = lo.z as u8;
+        node.child_max_x[slot] = hi.x as u8;
+        node.child_max_y[slot] = hi.y as u8;
+        node.child_max_z[slot] = hi.z as u8;
+    }
+    (node, node_bounds)
+}
+
 fn tri_bounds(t: &Tri) -> Aabb {
     let (a, b, c) = (Vec3A::from(t[0]), Vec3A::from(t[1]), Vec3A::from(t[2]));
     Aabb {
@@ -242,19 +261,22 @@ fn tri_bounds(t: &Tri) -> Aabb {
     }
 }
 
-/// Every node after its descendants: the reverse of a parent-first walk from the root.
-fn children_first_order(bvh: &CwBvh) -> Vec<u32> {
-    let mut order = Vec::with_capacity(bvh.nodes.len());
-    let mut stack = vec![0u32];
-    while let Some(n) = stack.pop() {
-        order.push(n);
-        let node = &bvh.nodes[n as usize];
-        for rank in 0..node.imask.count_ones() {
-            stack.push(node.child_base_idx + rank);
+/// The nodes grouped by depth, root first.
+fn levels(bvh: &CwBvh) -> Vec<Vec<u32>> {
+    let mut levels = vec![vec![0u32]];
+    loop {
+        let next: Vec<u32> = levels[levels.len() - 1]
+            .iter()
+            .flat_map(|&n| {
+                let node = &bvh.nodes[n as usize];
+                (0..node.imask.count_ones()).map(move |rank| node.child_base_idx + rank)
+            })
+            .collect();
+        if next.is_empty() {
+            return levels;
         }
+        levels.push(next);
     }
-    order.reverse();
-    order
 }
 
 #[cfg(test)]
@@ -281,7 +303,10 @@ mod tests {
         refit.refit(&tris).unwrap();
         assert_eq!(refit.cwbvh.nodes, built.cwbvh.nodes);
         assert_eq!(refit.cwbvh.total_aabb, built.cwbvh.total_aabb);
-        assert_eq!(refit.children_first.len(), built.cwbvh.nodes.len());
+        assert_eq!(
+            refit.levels.iter().map(Vec::len).sum::<usize>(),
+            built.cwbvh.nodes.len()
+        );
     }
 
     #[test]
