@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import argparse
 import os
-import statistics
+import sys
 import time
 
 import torch
@@ -32,6 +32,9 @@ import urhead
 from urhead import _core
 from urhead.ops import _reference as ref
 from urhead.ops import rasterize_gaussians
+
+sys.path.insert(0, os.path.dirname(__file__))
+from timing import median_ms
 
 SIZE = 512
 TILE = 16
@@ -104,15 +107,6 @@ def torch_tile_rasterize(means2d, conics, colors, opacities, depths, radii, bg):
     return torch.cat(rows, 0), pairs
 
 
-def median_ms(fn, reps):
-    times = []
-    for _ in range(reps):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return 1e3 * statistics.median(times)
-
-
 def loss_of(image, transmittance):
     return image.sum() + transmittance.sum()
 
@@ -135,8 +129,8 @@ def bench(n: int, reps: int, torch_max: int):
 
     forward()
     forward_backward()
-    fwd = median_ms(forward, reps)
-    fwd_bwd = median_ms(forward_backward, reps)
+    fwd = median_ms(forward, repeats=reps, warmup=0, max_seconds=float("inf"))
+    fwd_bwd = median_ms(forward_backward, repeats=reps, warmup=0, max_seconds=float("inf"))
 
     # Pairs the kernel's tile loop evaluated, from one direct call.
     with torch.no_grad():

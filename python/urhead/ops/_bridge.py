@@ -7,7 +7,8 @@ import numpy as np
 import torch
 
 from urhead import _core
-from urhead.errors import DTypeError, InvalidArgumentError
+from urhead.camera import Camera
+from urhead.errors import DTypeError, InvalidArgumentError, ShapeError
 
 FLOAT_DTYPES = (torch.float32, torch.float64)
 
@@ -54,3 +55,26 @@ def kernel(name: str, dtype: torch.dtype):
     """The Rust entry point ``name`` for ``dtype`` (``lbs_forward`` → ``lbs_forward_f32``)."""
     suffix = {torch.float32: "f32", torch.float64: "f64"}[dtype]
     return getattr(_core, f"{name}_{suffix}")
+
+
+def index_tensor(name: str, t: torch.Tensor) -> torch.Tensor:
+    """``t`` as int32; other integer dtypes are converted (face tables are small)."""
+    check_tensor(name, t)
+    if t.dtype == torch.int32:
+        return t
+    if t.dtype in (torch.int64, torch.int16, torch.uint8, torch.int8):
+        if t.numel() and (int(t.max()) > 2**31 - 1 or int(t.min()) < -(2**31)):
+            raise DTypeError(f"{name} holds values outside the int32 range")
+        return t.to(torch.int32)
+    raise DTypeError(f"{name} must be an integer tensor (int32), got {t.dtype}")
+
+
+def check_shape(name: str, t: torch.Tensor, ndim: int, last: int | None, layout: str) -> None:
+    if t.dim() != ndim or (last is not None and t.shape[-1] != last):
+        raise ShapeError(f"{name} must be {layout}, got {tuple(t.shape)}")
+
+
+def check_camera(camera: object) -> Camera:
+    if not isinstance(camera, Camera):
+        raise DTypeError(f"camera must be a urhead.Camera, got {type(camera).__name__}")
+    return camera

@@ -8,8 +8,17 @@ from urhead import _core
 from urhead._threads import num_threads
 from urhead.camera import Camera
 from urhead.errors import DTypeError
-from urhead.ops._bridge import float_dtype, from_numpy, grad_to_numpy, kernel, to_numpy
-from urhead.ops.rasterize import RasterOutput, check_camera, check_shape, index_tensor
+from urhead.ops._bridge import (
+    check_camera,
+    check_shape,
+    float_dtype,
+    from_numpy,
+    grad_to_numpy,
+    index_tensor,
+    kernel,
+    to_numpy,
+)
+from urhead.ops.rasterize import RasterOutput
 
 
 def antialias_topology(faces: torch.Tensor, num_verts: int | None = None) -> torch.Tensor:

@@ -6,8 +6,16 @@ import torch
 
 from urhead._threads import num_threads
 from urhead.errors import DTypeError
-from urhead.ops._bridge import float_dtype, from_numpy, grad_to_numpy, kernel, to_numpy
-from urhead.ops.rasterize import RasterOutput, UvRasterOutput, check_shape, index_tensor
+from urhead.ops._bridge import (
+    check_shape,
+    float_dtype,
+    from_numpy,
+    grad_to_numpy,
+    index_tensor,
+    kernel,
+    to_numpy,
+)
+from urhead.ops.rasterize import RasterOutput, UvRasterOutput
 
 
 class _Interpolate(torch.autograd.Function):

@@ -9,7 +9,15 @@ import torch
 from urhead._threads import num_threads
 from urhead.camera import Camera
 from urhead.errors import DTypeError, ShapeError
-from urhead.ops._bridge import check_tensor, float_dtype, grad_to_numpy, kernel, to_numpy
+from urhead.ops._bridge import (
+    check_camera,
+    check_shape,
+    float_dtype,
+    grad_to_numpy,
+    index_tensor,
+    kernel,
+    to_numpy,
+)
 
 
 class RasterOutput(NamedTuple):
@@ -27,29 +35,6 @@ class UvRasterOutput(NamedTuple):
     """(H, W) int32 index of the UV triangle covering each texel centre, -1 where empty."""
     bary: torch.Tensor
     """(H, W, 2) barycentrics (affine in UV) of the triangle's 2nd and 3rd vertex."""
-
-
-def index_tensor(name: str, t: torch.Tensor) -> torch.Tensor:
-    """``t`` as int32; other integer dtypes are converted (face tables are small)."""
-    check_tensor(name, t)
-    if t.dtype == torch.int32:
-        return t
-    if t.dtype in (torch.int64, torch.int16, torch.uint8, torch.int8):
-        if t.numel() and (int(t.max()) > 2**31 - 1 or int(t.min()) < -(2**31)):
-            raise DTypeError(f"{name} holds values outside the int32 range")
-        return t.to(torch.int32)
-    raise DTypeError(f"{name} must be an integer tensor (int32), got {t.dtype}")
-
-
-def check_shape(name: str, t: torch.Tensor, ndim: int, last: int | None, layout: str) -> None:
-    if t.dim() != ndim or (last is not None and t.shape[-1] != last):
-        raise ShapeError(f"{name} must be {layout}, got {tuple(t.shape)}")
-
-
-def check_camera(camera: object) -> Camera:
-    if not isinstance(camera, Camera):
-        raise DTypeError(f"camera must be a urhead.Camera, got {type(camera).__name__}")
-    return camera
 
 
 class _Rasterize(torch.autograd.Function):

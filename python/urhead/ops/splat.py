@@ -18,7 +18,14 @@ import torch
 from urhead._threads import num_threads
 from urhead.camera import Camera
 from urhead.errors import DTypeError, InvalidArgumentError, ShapeError
-from urhead.ops._bridge import float_dtype, from_numpy, grad_to_numpy, kernel, to_numpy
+from urhead.ops._bridge import (
+    check_camera,
+    float_dtype,
+    from_numpy,
+    grad_to_numpy,
+    kernel,
+    to_numpy,
+)
 
 
 class SplatOutput(NamedTuple):
@@ -218,8 +225,7 @@ def rasterize_gaussians(
     contiguous, CPU. Threads: ``URHEAD_NUM_THREADS`` or ``torch.get_num_threads()``.
     """
     dtype = float_dtype("means", means)
-    if not isinstance(camera, Camera):
-        raise DTypeError(f"camera must be a urhead.Camera, got {type(camera).__name__}")
+    check_camera(camera)
     if means.dim() != 2 or means.shape[1] != 3:
         raise ShapeError(f"means must be (N, 3), got {tuple(means.shape)}")
     n = means.shape[0]

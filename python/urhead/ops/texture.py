@@ -6,8 +6,7 @@ import torch
 
 from urhead._threads import num_threads
 from urhead.errors import DTypeError
-from urhead.ops._bridge import float_dtype, from_numpy, grad_to_numpy, kernel, to_numpy
-from urhead.ops.rasterize import check_shape
+from urhead.ops._bridge import check_shape, float_dtype, from_numpy, grad_to_numpy, kernel, to_numpy
 
 
 class _Texture(torch.autograd.Function):
