@@ -11,7 +11,7 @@ import argparse
 import importlib
 import sys
 
-COMMAND_MODULES = ("urhead.head.convert", "urhead.data.synthetic")
+COMMAND_MODULES = ("urhead.head.convert", "urhead.data.synthetic", "urhead.train.command")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -87,11 +87,17 @@ class FitConfig:
     initial_gaussians: int = option(
         10_000, "Gaussians sampled uniformly over the UV surface at the start (ours)"
     )
+    color_init_frames: int = option(
+        8, "training frames projected onto the surface to initialise C; 0 = grey (ours)"
+    )
     max_gaussians: int = option(30_000, "Gaussian budget (paper: ~24k on INSTA bala)")
     sample_every: int = option(500, "iterations between adaptive-sampling rounds (ours)")
     sample_cap: int = option(2_000, "new Gaussians per sampling round, at most (ours)")
     sampling: Literal["adaptive", "uniform"] = option(
         "adaptive", "where new Gaussians go: error-driven or uniform (ablation)"
+    )
+    error_grid: int = option(
+        256, "side of the UV grid the photometric error is accumulated on for sampling (ours)"
     )
     prune_opacity: float = option(0.01, "prune Gaussians below this opacity (paper: 0.01)")
     prune_screen_fraction: float = option(
@@ -132,6 +138,9 @@ class FitConfig:
     eval_every_seconds: float = option(
         60.0, "held-out PSNR logged at this wall-clock interval (ours)"
     )
+    eval_frames: int = option(
+        16, "held-out frames (evenly spread) scored for the PSNR-vs-time log (ours)"
+    )
     checkpoint_every: int = option(1_000, "iterations between atomic checkpoints (ours)")
     seed: int = option(0, "random seed")
 
@@ -144,6 +153,10 @@ class FitConfig:
             ("max_gaussians", self.max_gaussians >= self.initial_gaussians >= 0),
             ("sample_every", self.sample_every >= 1),
             ("sample_cap", self.sample_cap >= 0),
+            ("color_init_frames", self.color_init_frames >= 0),
+            ("error_grid", self.error_grid >= 1),
+            ("eval_frames", self.eval_frames >= 1),
+            ("checkpoint_every", self.checkpoint_every >= 1),
             ("prune_opacity", 0 <= self.prune_opacity < 1),
             ("depth_eps", self.depth_eps >= 0),
             ("lr_decay_final", 0 < self.lr_decay_final <= 1),

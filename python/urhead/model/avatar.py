@@ -1,0 +1,338 @@
+"""The URHead avatar: a head model, the packed UV maps Θ_u, the Gaussians' UV points and the
+per-frame FLAME parameters, and its differentiable renderer (DESIGN.md steps 1–6).
+
+Normals. N is stored in the head's rest pose. A posed normal is ``R·N`` normalised, with
+``R`` the vertex's skinning rotation (interpolated with the barycentrics between vertices).
+Expression and pose-corrective blendshapes bend the surface without rotating N; that is the
+approximation every UV-normal-map avatar makes, and N is learnt to absorb it on average.
+
+Positions. A vertex is displaced along its posed normal, ``v̂ = v + D(uv_v)·n_v`` (the mesh
+branch). A Gaussian at UV point (u, v) sits at ``x = P(u, v) + D(u, v)·n(u, v)``, the
+paper's Eq. 2, with P the undisplaced posed mesh at that point: at a vertex the two agree.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from urhead.camera import Camera
+from urhead.head.model import HeadModel
+from urhead.losses import uniform_laplacian
+from urhead.model.layout import MapLayout
+from urhead.ops import (
+    antialias,
+    antialias_topology,
+    interpolate,
+    lbs,
+    normal_to_quat,
+    rasterize,
+    rasterize_gaussians,
+    texture,
+)
+from urhead.sh import sh_basis
+
+POSE_SIZE = 15
+"""FLAME pose: global, neck, jaw, left eye, right eye axis-angles."""
+
+
+class FlameParams(NamedTuple):
+    """One frame's FLAME parameters (1-D tensors)."""
+
+    expr: torch.Tensor
+    """(E,) expression coefficients."""
+    pose: torch.Tensor
+    """(15,) axis-angles: global, neck, jaw, left eye, right eye."""
+    transl: torch.Tensor
+    """(3,) translation, metres."""
+
+
+class MeshRender(NamedTuple):
+    image: torch.Tensor
+    """(H, W, 3) antialiased mesh colour over the background."""
+    alpha: torch.Tensor
+    """(H, W) antialiased coverage."""
+    normals: torch.Tensor | None
+    """(P, 3) unit normals in OpenCV camera axes at the covered pixels, when asked for."""
+    pixels: torch.Tensor
+    """(P,) int64 flat indices of the covered pixels."""
+    uv: torch.Tensor
+    """(P, 2) UV coordinates seen at the covered pixels (detached)."""
+    depth: torch.Tensor
+    """(H, W) linear view depth, +inf where empty."""
+    verts: torch.Tensor
+    """(V, 3) displaced posed vertices."""
+    offsets: torch.Tensor
+    """(V, 3) displacement of each vertex, v̂ − v."""
+
+
+class GaussianRender(NamedTuple):
+    image: torch.Tensor
+    """(H, W, 3) premultiplied Gaussian layer."""
+    transmittance: torch.Tensor
+    """(H, W) transmittance left after the Gaussians."""
+    radii: torch.Tensor
+    """(N, 2) int32 screen radii (0 = culled)."""
+    means: torch.Tensor
+    """(N, 3) world positions."""
+    quats: torch.Tensor
+    """(N, 4) rotations (w, x, y, z)."""
+    scales: torch.Tensor
+    """(N, 3) standard deviations, metres."""
+    opacities: torch.Tensor
+    """(N,) opacities in (0, 1)."""
+    sh: torch.Tensor
+    """(N, K, 3) SH coefficients."""
+
+
+class Render(NamedTuple):
+    image: torch.Tensor
+    """(H, W, 3) the composite: Gaussians over the mesh over the background."""
+    mesh: MeshRender
+    gaussians: GaussianRender | None
+
+
+@dataclass
+class Avatar:
+    """Everything a fitted avatar is. Tensors are float32 on the CPU.
+
+    - ``maps`` (R, R, layout.channels): the UV maps (a leaf tensor; trained in place).
+    - ``gaussian_uv`` (N, 2), ``gaussian_face`` (N,) int64, ``gaussian_bary`` (N, 3): each
+      Gaussian's UV point, the face whose UV triangle holds it and its barycentrics there.
+    - ``shape`` (S,) identity coefficients; ``static_offset`` (V, 3) or None (VHAP's
+      per-vertex offsets), both fixed.
+    - ``timesteps`` (T,) int64 and ``frame_params`` (T, E + 18): the per-frame expression,
+      pose and translation of the training frames (a leaf tensor; trained).
+    - ``background`` (3,) colour behind the head.
+    """
+
+    head: HeadModel
+    layout: MapLayout
+    maps: torch.Tensor
+    gaussian_uv: torch.Tensor
+    gaussian_face: torch.Tensor
+    gaussian_bary: torch.Tensor
+    shape: torch.Tensor
+    static_offset: torch.Tensor | None
+    timesteps: torch.Tensor
+    frame_params: torch.Tensor
+    background: torch.Tensor
+    depth_eps: float = 0.01
+    _tables: dict = field(default=None, init=False, repr=False)
+
+    @property
+    def num_expr(self) -> int:
+        return self.frame_params.shape[1] - POSE_SIZE - 3
+
+    @property
+    def num_gaussians(self) -> int:
+        return self.gaussian_uv.shape[0] if self.layout.gaussians else 0
+
+    @property
+    def resolution(self) -> int:
+        return self.maps.shape[0]
+
+    def frame(self, timestep: int) -> FlameParams:
+        """The trained parameters of a training timestep (differentiable rows)."""
+        row = self.frame_row(timestep)
+        return self.split_params(self.frame_params[row])
+
+    def frame_row(self, timestep: int) -> int:
+        rows = (self.timesteps == int(timestep)).nonzero()
+        if rows.numel() == 0:
+            raise KeyError(f"timestep {timestep} is not a training frame of this avatar")
+        return int(rows[0, 0])
+
+    def split_params(self, row: torch.Tensor) -> FlameParams:
+        e = self.num_expr
+        return FlameParams(row[:e], row[e : e + POSE_SIZE], row[e + POSE_SIZE :])
+
+    def params_from_flame(self, flame: dict) -> FlameParams:
+        """FLAME parameters of a dataset frame (FORMATS.md keys) as :class:`FlameParams`,
+        expression truncated or zero-padded to this avatar's count."""
+        expr = np.zeros(self.num_expr, np.float32)
+        src = np.asarray(flame["expr"], np.float32).reshape(-1)[: self.num_expr]
+        expr[: src.size] = src
+        pose = np.concatenate(
+            [
+                np.asarray(flame[k], np.float32).reshape(-1)
+                for k in ("rotation", "neck_pose", "jaw_pose", "eyes_pose")
+            ]
+        )
+        transl = np.asarray(flame["translation"], np.float32).reshape(-1)
+        return FlameParams(*(torch.from_numpy(a) for a in (expr, pose, transl)))
+
+    # --- rendering -------------------------------------------------------------------
+
+    def tables(self) -> dict:
+        """Constant tensors derived from the head and identity, built once."""
+        if self._tables is None:
+            self._tables = _build_tables(self)
+        return self._tables
+
+    def render(
+        self,
+        params: FlameParams,
+        camera: Camera,
+        *,
+        gaussians: bool = True,
+        occlusion_aware: bool = True,
+        normals: bool = False,
+    ) -> Render:
+        """Renders one frame. Differentiable in ``maps`` (sparse gradient) and ``params``.
+
+        Args:
+            params: the frame's :class:`FlameParams`.
+            camera: the view.
+            gaussians: include the Gaussian layer (False renders the mesh branch alone).
+            occlusion_aware: skip Gaussian samples behind the mesh (depth + ``depth_eps``).
+            normals: also return the mesh normals at covered pixels (for the normal loss).
+        """
+        t = self.tables()
+        layout = self.layout
+        betas = params.expr[None]
+        skinned = lbs(
+            betas.contiguous(),
+            params.pose[None].contiguous(),
+            transl=params.transl[None].contiguous(),
+            **t["lbs"],
+        )
+        verts, rotations = skinned.verts[0], skinned.rotations[0]
+        mesh = self._render_mesh(verts, rotations, camera, normals)
+        if not (gaussians and layout.gaussians and self.num_gaussians > 0):
+            return Render(mesh.image, mesh, None)
+        splats = self._render_gaussians(
+            verts, rotations, camera, mesh.depth if occlusion_aware else None
+        )
+        image = splats.image + splats.transmittance[..., None] * mesh.image
+        return Render(image, mesh, splats)
+
+    def _render_mesh(self, verts, rotations, camera, want_normals) -> MeshRender:
+        t = self.tables()
+        layout = self.layout
+        at_vertex = texture(self.maps, t["vertex_uv"])
+        vertex_normal = _rotate_normalize(rotations, at_vertex[:, layout.normal])
+        offsets = at_vertex[:, layout.displacement, None] * vertex_normal
+        displaced = verts + offsets
+        raster = rasterize(displaced, t["faces"], camera)
+        uv_image = interpolate(t["uv_coords"], raster, t["uv_faces"])
+        h, w = camera.height, camera.width
+        pixels = (raster.tri_id.reshape(-1) >= 0).nonzero()[:, 0]
+        uv = uv_image.reshape(-1, 2)[pixels]
+        samples = texture(self.maps, uv.contiguous())
+        sh = samples[:, layout.color].reshape(-1, layout.sh_coeffs, 3)
+        basis = self._pixel_basis(camera)[pixels]
+        rgb = ((basis[:, :, None] * sh).sum(1) + 0.5).clamp_min(0.0)
+        background = torch.cat([self.background, self.background.new_zeros(1)])
+        flat = background.expand(h * w, 4).clone()
+        flat = flat.index_put((pixels,), torch.cat([rgb, rgb.new_ones(rgb.shape[0], 1)], 1))
+        shaded = antialias(
+            flat.reshape(h, w, 4), raster, displaced, t["faces"], camera, t["topology"]
+        )
+        normals = None
+        if want_normals:
+            rot_image = interpolate(rotations.reshape(-1, 9), raster, t["faces"])
+            world = _rotate_normalize(
+                rot_image.reshape(-1, 9)[pixels].reshape(-1, 3, 3), samples[:, layout.normal]
+            )
+            normals = world @ camera.viewmat[:3, :3].T
+        return MeshRender(
+            shaded[..., :3],
+            shaded[..., 3],
+            normals,
+            pixels,
+            uv.detach(),
+            raster.depth,
+            displaced,
+            offsets,
+        )
+
+    def _render_gaussians(self, verts, rotations, camera, depth_map) -> GaussianRender:
+        layout = self.layout
+        face_verts = self.tables()["faces_long"][self.gaussian_face]  # (N, 3)
+        bary = self.gaussian_bary[:, :, None]
+        surface = (verts[face_verts] * bary).sum(1)
+        rot = (rotations[face_verts] * bary[..., None]).sum(1)
+        samples = texture(self.maps, self.gaussian_uv)
+        normal = _rotate_normalize(rot, samples[:, layout.normal])
+        means = surface + samples[:, layout.displacement, None] * normal
+        quats = normal_to_quat(normal)
+        scales = samples[:, layout.scale].exp()
+        opacities = torch.sigmoid(samples[:, layout.opacity])
+        sh = samples[:, layout.color].reshape(-1, layout.sh_coeffs, 3)
+        out = rasterize_gaussians(
+            means.contiguous(),
+            quats.contiguous(),
+            scales.contiguous(),
+            opacities.contiguous(),
+            sh.contiguous(),
+            camera,
+            depth_map=depth_map,
+            depth_eps=self.depth_eps,
+            sh_degree=layout.sh_degree,
+        )
+        return GaussianRender(
+            out.image, out.transmittance, out.radii, means, quats, scales, opacities, sh
+        )
+
+    def _pixel_basis(self, camera: Camera) -> torch.Tensor:
+        """(H·W, K) SH basis of each pixel's viewing ray. For a pinhole camera the direction
+        from the camera centre to the surface seen at a pixel is the pixel's ray, whatever
+        the geometry, so this is computed once per camera."""
+        key = repr(camera.core_args())
+        cache = self.tables()["pixel_basis"]
+        if key not in cache:
+            cache.clear()
+            cache[key] = _ray_basis(camera, self.layout.sh_degree)
+        return cache[key]
+
+
+def _rotate_normalize(rotations: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
+    """(N, 3, 3) rotations applied to (N, 3) normals, normalised (zero stays zero)."""
+    n = (rotations @ normals[:, :, None])[:, :, 0]
+    return n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+
+def _ray_basis(camera: Camera, degree: int) -> torch.Tensor:
+    h, w = camera.height, camera.width
+    ys, xs = torch.meshgrid(
+        torch.arange(h, dtype=torch.float64) + 0.5,
+        torch.arange(w, dtype=torch.float64) + 0.5,
+        indexing="ij",
+    )
+    k = camera.K.double()
+    cam = torch.stack([(xs - k[0, 2]) / k[0, 0], (ys - k[1, 2]) / k[1, 1], torch.ones_like(xs)], -1)
+    world = cam.reshape(-1, 3) @ camera.viewmat[:3, :3].double()  # R^T applied to rows
+    world = world / world.norm(dim=-1, keepdim=True)
+    return sh_basis(world, degree).float().contiguous()
+
+
+def _build_tables(avatar: Avatar) -> dict:
+    head = avatar.head
+    e = avatar.num_expr
+    s = avatar.shape.shape[0]
+    full = head.lbs_tables(torch.float32, num_shape=s, num_expr=e)
+    shapedirs = full["shapedirs"]
+    # The identity is fixed: bake it (and VHAP's static offset) into the template, so the
+    # skinning kernel only carries the expression columns.
+    template = full["v_template"] + (shapedirs[:, :, :s] @ avatar.shape)
+    if avatar.static_offset is not None:
+        template = template + avatar.static_offset
+    lbs_tables = dict(full)
+    lbs_tables["v_template"] = template.contiguous()
+    lbs_tables["shapedirs"] = shapedirs[:, :, s:].contiguous()
+    faces = torch.tensor(head.faces)
+    return {
+        "lbs": lbs_tables,
+        "faces": faces,
+        "faces_long": faces.long(),
+        "uv_coords": torch.tensor(head.uv_coords),
+        "uv_faces": torch.tensor(head.uv_faces),
+        "vertex_uv": torch.tensor(head.vertex_uv),
+        "topology": antialias_topology(faces, head.num_vertices),
+        "laplacian": uniform_laplacian(faces, head.num_vertices),
+        "pixel_basis": {},
+    }

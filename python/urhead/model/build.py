@@ -1,0 +1,125 @@
+"""A new avatar for a subject: identity and per-frame FLAME parameters from the tracking,
+maps initialised from the head and the first frames, Gaussians spread uniformly over UV."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from urhead.errors import InvalidArgumentError
+from urhead.head.model import HeadModel
+from urhead.model.avatar import Avatar
+from urhead.model.init import (
+    initial_maps,
+    project_colors,
+    surface_area,
+    texel_surface,
+    vertex_normals,
+)
+from urhead.model.layout import MapLayout
+from urhead.model.sampling import UvSurface
+from urhead.ops import lbs
+
+
+def frame_table(frames, num_expr: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(timesteps (T,), params (T, E + 18))`` from a split's tracked FLAME parameters."""
+    flame = frames.flame_params()
+    expr = np.zeros((len(frames), num_expr), np.float32)
+    src = flame["expr"].reshape(len(frames), -1)[:, :num_expr]
+    expr[:, : src.shape[1]] = src
+    parts = [expr] + [
+        flame[k].reshape(len(frames), -1)
+        for k in ("rotation", "neck_pose", "jaw_pose", "eyes_pose", "translation")
+    ]
+    params = torch.from_numpy(np.concatenate(parts, 1).astype(np.float32))
+    return torch.tensor(frames.timesteps, dtype=torch.int64), params.contiguous()
+
+
+def build_avatar(
+    head: HeadModel,
+    train,
+    *,
+    resolution: int,
+    sh_degree: int,
+    gaussians: bool,
+    initial_gaussians: int,
+    background: torch.Tensor,
+    depth_eps: float,
+    color_frames: int,
+    rng: np.random.Generator,
+) -> Avatar:
+    """A fresh avatar for the training split ``train`` (a :class:`FrameSequence`).
+
+    Args:
+        resolution: side of the UV maps. sh_degree: 0–3. gaussians: with the Gaussian
+        branch (O, S maps and Gaussians) or mesh only. initial_gaussians: how many, uniform
+        over the UV area. color_frames: how many training frames (spread over the
+        sequence) initialise C by projection; 0 starts from grey.
+    """
+    if not head.has_uv:
+        raise InvalidArgumentError("the head model has no UV layout; an avatar needs one")
+    if len(train) == 0:
+        raise InvalidArgumentError("the subject has no training frames")
+    flame = train.flame_params()
+    num_expr = min(head.num_expr, flame["expr"].reshape(len(train), -1).shape[1])
+    shape = torch.from_numpy(flame["shape"][0].reshape(-1)[: head.num_shape].astype(np.float32))
+    static = None
+    if "static_offset" in flame:
+        offset = flame["static_offset"][0].reshape(-1, 3)
+        if offset.shape[0] != head.num_vertices:
+            raise InvalidArgumentError(
+                f"static_offset has {offset.shape[0]} vertices, the head {head.num_vertices} "
+                "(a VHAP export with teeth needs a head converted with teeth)"
+            )
+        static = torch.from_numpy(offset.astype(np.float32))
+    timesteps, params = frame_table(train, num_expr)
+    layout = MapLayout(sh_degree, gaussians)
+    avatar = Avatar(
+        head=head,
+        layout=layout,
+        maps=torch.zeros(1, 1, layout.channels),
+        gaussian_uv=torch.zeros(0, 2),
+        gaussian_face=torch.zeros(0, dtype=torch.int64),
+        gaussian_bary=torch.zeros(0, 3),
+        shape=shape,
+        static_offset=static,
+        timesteps=timesteps,
+        frame_params=params,
+        background=background.float(),
+        depth_eps=depth_eps,
+    )
+    tables = avatar.tables()
+    faces = tables["faces"]
+    rest = tables["lbs"]["v_template"]
+    uv_raster = texel_surface(head, resolution)
+    colors = None
+    if color_frames > 0:
+        picks = np.unique(np.linspace(0, len(train) - 1, color_frames).round().astype(int))
+        frames = [train[int(i)] for i in picks]
+        posed, normals = [], []
+        with torch.no_grad():
+            for i in picks:
+                p = avatar.split_params(params[int(i)])
+                out = lbs(p.expr[None], p.pose[None], transl=p.transl[None], **tables["lbs"])
+                posed.append(out.verts[0].contiguous())
+                normals.append(vertex_normals(out.verts[0], faces))
+        colors = project_colors(posed, frames, faces, uv_raster, normals)
+    area = surface_area(rest, faces)
+    spacing = math.sqrt(area / max(initial_gaussians, 1))
+    avatar.maps = initial_maps(layout, resolution, rest, faces, uv_raster, colors, spacing)
+    if gaussians and initial_gaussians > 0:
+        surface = UvSurface(head.uv_coords, head.uv_faces)
+        set_gaussians(avatar, surface, surface.uniform(initial_gaussians, rng))
+    return avatar
+
+
+def set_gaussians(avatar: Avatar, surface: UvSurface, uv: np.ndarray) -> None:
+    """Replaces the avatar's Gaussians by those at UV points ``uv`` (N, 2) on the atlas."""
+    face, bary = surface.locate(uv)
+    if (face < 0).any():
+        raise InvalidArgumentError("Gaussian UV points must lie on the atlas")
+    avatar.gaussian_uv = torch.from_numpy(np.ascontiguousarray(uv, np.float32))
+    avatar.gaussian_face = torch.from_numpy(face)
+    avatar.gaussian_bary = torch.from_numpy(bary.astype(np.float32))

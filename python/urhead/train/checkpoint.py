@@ -1,0 +1,44 @@
+"""Training checkpoints: the avatar files plus optimiser moments, sampling statistics and
+the loop's position, written as one directory that replaces the previous one atomically.
+Resuming from it continues bit for bit (the frame order and sampling draws are functions of
+the seed and the iteration, not of a live random state)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from urhead.model.io import load_avatar, write_avatar_files, write_directory_atomically
+
+CHECKPOINT_DIR = "checkpoint"
+
+
+def save_checkpoint(out: Path, avatar, state: dict) -> None:
+    """Writes ``out/checkpoint`` (the avatar files and ``state.pt``) atomically."""
+
+    def fill(tmp: Path) -> None:
+        write_avatar_files(avatar, tmp)
+        torch.save(state, tmp / "state.pt")
+
+    write_directory_atomically(out / CHECKPOINT_DIR, fill)
+
+
+def find_checkpoint(out: Path) -> Path | None:
+    """The newest complete checkpoint under ``out``: ``checkpoint`` itself, or the previous
+    one kept under its temporary old name if the process died between the two renames."""
+    path = out / CHECKPOINT_DIR
+    if (path / "state.pt").is_file():
+        return path
+    leftovers = sorted(out.glob(f".{CHECKPOINT_DIR}.old-*"), key=lambda p: p.stat().st_mtime)
+    for p in reversed(leftovers):
+        if (p / "state.pt").is_file():
+            return p
+    return None
+
+
+def load_checkpoint(path: Path):
+    """``(avatar, state)`` from a checkpoint directory."""
+    avatar = load_avatar(path)
+    state = torch.load(path / "state.pt", weights_only=True)
+    return avatar, state

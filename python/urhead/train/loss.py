@@ -1,0 +1,82 @@
+"""The training objective of the paper (Eq. 8–11):
+
+L = λ_ssim (1 − SSIM(I, I_gt)) + (1 − λ_ssim) L_photo + λ_n L_normal + λ_L L_lap,
+L_photo = (1 − w) ‖I − I_gt‖₁ + w ‖I_mesh − I_gt‖₁, w = 0.2 (the mesh term).
+
+Terms whose data or branch is absent are not computed at all: no normal maps → no
+L_normal; mesh-only fit → I is I_mesh and L_photo is one L1; λ = 0 → skipped.
+
+Region: the photometric terms cover the whole matted image (the background is known, and
+pixels outside the mask are what stops the silhouette from growing); metrics are taken
+inside the head mask. L_lap regularises the displacement field: it is the paper's
+Laplacian applied to the per-vertex offsets v̂ − v, so the FLAME surface's own curvature is
+not penalised and only D is smoothed (our reading of "suppress noisy displacements").
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+
+from urhead.losses import laplacian_loss, ssim
+from urhead.model.avatar import Render
+
+
+class LossTerms(NamedTuple):
+    total: torch.Tensor
+    terms: dict[str, float]
+    """Each computed term's value (for logs)."""
+
+
+def training_loss(
+    render: Render,
+    frame,
+    *,
+    lambda_ssim: float,
+    mesh_term: float,
+    lambda_normal: float,
+    lambda_laplacian: float,
+    laplacian: torch.Tensor,
+    use_normals: bool,
+) -> LossTerms:
+    """The loss of one rendered training frame (a dataset :class:`Frame`)."""
+    target = frame.image
+    image = render.image
+    l1 = (image - target).abs().mean()
+    terms = {"l1": float(l1.detach())}
+    photo = l1
+    if render.gaussians is not None and mesh_term > 0:
+        l1_mesh = (render.mesh.image - target).abs().mean()
+        photo = (1 - mesh_term) * l1 + mesh_term * l1_mesh
+        terms["l1_mesh"] = float(l1_mesh.detach())
+    total = (1 - lambda_ssim) * photo
+    if lambda_ssim > 0:
+        d_ssim = 1 - ssim(image, target)
+        total = total + lambda_ssim * d_ssim
+        terms["d_ssim"] = float(d_ssim.detach())
+    if use_normals and lambda_normal > 0:
+        normal = normal_loss(render, frame)
+        total = total + lambda_normal * normal
+        terms["normal"] = float(normal.detach())
+    if lambda_laplacian > 0:
+        lap = laplacian_loss(render.mesh.offsets, laplacian)
+        total = total + lambda_laplacian * lap
+        terms["laplacian"] = float(lap.detach())
+    return LossTerms(total, terms)
+
+
+def normal_loss(render: Render, frame) -> torch.Tensor:
+    """Mean ‖N_mesh − N_gt‖₁ over covered pixels inside the mask where N_gt is defined
+    (camera axes, both unit)."""
+    gt = frame.normals.reshape(-1, 3)[render.mesh.pixels]
+    weight = frame.mask.reshape(-1)[render.mesh.pixels] * (gt.abs().sum(-1) > 0)
+    diff = (render.mesh.normals - gt).abs().sum(-1)
+    return (diff * weight).sum() / weight.sum().clamp_min(1)
+
+
+def pixel_error(render: Render, frame) -> torch.Tensor:
+    """(P,) per-pixel ‖I − I_gt‖₁ at the mesh's covered pixels, inside the mask (for the
+    UV error map)."""
+    diff = (render.image.detach() - frame.image).abs().sum(-1) * frame.mask
+    return diff.reshape(-1)[render.mesh.pixels]

@@ -1,0 +1,338 @@
+"""The fit: joint optimisation of the UV maps, the Gaussians' placement and the per-frame
+FLAME parameters (DESIGN.md "One training iteration"), with held-out PSNR logged against
+training wall-clock time, atomic checkpoints and exact resumption.
+
+Timing: ``seconds`` everywhere is training time — the iterations themselves, sampling
+rounds included — excluding the held-out evaluations and checkpoint writes, so curves from
+runs with different logging settings compare.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from urhead.config import FitConfig
+from urhead.eval import evaluate_frames
+from urhead.losses import psnr
+from urhead.model import ErrorAccumulator, UvSurface, build_avatar, save_avatar, set_gaussians
+from urhead.model.avatar import Avatar
+from urhead.ops import texture
+from urhead.optim import SparseAdam
+from urhead.train.checkpoint import find_checkpoint, load_checkpoint, save_checkpoint
+from urhead.train.loss import pixel_error, training_loss
+from urhead.train.plots import plot_psnr_vs_time
+
+log = logging.getLogger("urhead.fit")
+
+PSNR_CSV = "psnr_vs_time.csv"
+
+
+@dataclass
+class FitResult:
+    avatar: Avatar
+    metrics: dict
+    out: Path
+
+
+def frame_order(seed: int, epoch: int, count: int) -> np.ndarray:
+    """The training frames' order in ``epoch``: a permutation fixed by (seed, epoch)."""
+    return np.random.default_rng([seed, 0, epoch]).permutation(count)
+
+
+def uv_lr_factor(config: FitConfig, iteration: int) -> float:
+    """Exponential decay of the UV-map learning rates after ``lr_decay_start``, reaching
+    ``lr_decay_final`` at the last iteration."""
+    span = config.iterations - config.lr_decay_start
+    if iteration <= config.lr_decay_start or span <= 0:
+        return 1.0
+    return config.lr_decay_final ** ((iteration - config.lr_decay_start) / span)
+
+
+def eval_subset(frames, count: int) -> list:
+    """``count`` held-out frames spread evenly over the sequence (all if fewer)."""
+    n = len(frames)
+    if n <= count:
+        return list(range(n))
+    return sorted({int(i) for i in np.linspace(0, n - 1, count).round()})
+
+
+class Trainer:
+    """One fit of ``subject`` with ``head`` into ``out``. Call :meth:`run`."""
+
+    def __init__(self, subject, head, config: FitConfig, out: Path, *, progress: bool = True):
+        self.subject = subject
+        self.head = head
+        self.config = config
+        self.out = Path(out)
+        self.progress = progress
+        self.use_normals = bool(config.normal_loss and subject.has_normals)
+        self.gaussians = bool(config.gaussians)
+        self.adaptive = self.gaussians and config.sampling == "adaptive"
+        self.held_out = subject.test if len(subject.test) else subject.val
+        if len(subject.train) == 0:
+            raise ValueError(f"{subject.root}: the subject has no training frames")
+        if len(self.held_out) == 0:
+            raise ValueError(f"{subject.root}: the subject has no test or val frames to score")
+        self.background = _subject_background(subject)
+
+    # --- set-up --------------------------------------------------------------------
+
+    def _new_state(self) -> tuple[Avatar, dict]:
+        c = self.config
+        avatar = build_avatar(
+            self.head,
+            self.subject.train,
+            resolution=c.uv_resolution,
+            sh_degree=c.sh_degree,
+            gaussians=self.gaussians,
+            initial_gaussians=c.initial_gaussians if self.gaussians else 0,
+            background=self.background,
+            depth_eps=c.depth_eps,
+            color_frames=c.color_init_frames,
+            rng=np.random.default_rng([c.seed, 1]),
+        )
+        return avatar, {"iteration": 0, "seconds": 0.0, "history": []}
+
+    def _optimizers(self, avatar: Avatar) -> tuple[SparseAdam, SparseAdam, torch.Tensor]:
+        c = self.config
+        avatar.maps.requires_grad_(True)
+        avatar.frame_params.requires_grad_(True)
+        map_lr = avatar.layout.channel_rates(
+            c.lr_color, c.lr_normal, c.lr_displacement, c.lr_opacity, c.lr_scale
+        )
+        e = avatar.num_expr
+        frame_lr = torch.tensor(
+            [c.lr_expression] * e + [c.lr_pose] * 15 + [c.lr_translation] * 3,
+            dtype=torch.float32,
+        )
+        maps_opt = SparseAdam([avatar.maps], lr=map_lr.clone())
+        frames_opt = SparseAdam([avatar.frame_params], lr=frame_lr)
+        return maps_opt, frames_opt, map_lr
+
+    def _describe(self, avatar: Avatar) -> None:
+        c = self.config
+        left_out = []
+        if not self.subject.has_normals:
+            left_out.append("normal loss (the subject has no normal maps)")
+        elif not c.normal_loss:
+            left_out.append("normal loss (switched off)")
+        if not self.gaussians:
+            left_out.append("Gaussian branch and its O, S maps (mesh only)")
+        elif not self.adaptive:
+            left_out.append("UV error accumulation (uniform sampling)")
+        if c.mesh_term == 0 and self.gaussians:
+            left_out.append("mesh-only L1 term")
+        if c.lambda_ssim == 0:
+            left_out.append("SSIM term")
+        log.info(
+            "fit: %d train / %d held-out frames, maps %d² × %d channels (SH %d), %d Gaussians",
+            len(self.subject.train),
+            len(self.held_out),
+            avatar.resolution,
+            avatar.layout.channels,
+            c.sh_degree,
+            avatar.num_gaussians,
+        )
+        log.info("left out: %s", "; ".join(left_out) if left_out else "nothing")
+
+    # --- the loop ------------------------------------------------------------------
+
+    def run(self, resume: bool = False) -> FitResult:
+        c = self.config
+        self.out.mkdir(parents=True, exist_ok=True)
+        checkpoint = find_checkpoint(self.out) if resume else None
+        if checkpoint is not None:
+            avatar, state = load_checkpoint(checkpoint)
+            if state["config"] != asdict(c):
+                raise ValueError(
+                    f"{checkpoint}: was written with a different configuration; "
+                    "resume with the same options or start a new --out"
+                )
+            log.info("resuming from %s at iteration %d", checkpoint, state["iteration"])
+        else:
+            avatar, state = self._new_state()
+        self._describe(avatar)
+        maps_opt, frames_opt, map_lr = self._optimizers(avatar)
+        accumulator = ErrorAccumulator(min(c.error_grid, c.uv_resolution))
+        surface = UvSurface(self.head.uv_coords, self.head.uv_faces)
+        max_radius = torch.zeros(avatar.num_gaussians, dtype=torch.int32)
+        if "maps_opt" in state:
+            maps_opt.load_state_dict(state["maps_opt"])
+            frames_opt.load_state_dict(state["frames_opt"])
+            accumulator.load_state(state["accumulator"])
+            max_radius = state["max_radius"]
+        laplacian = avatar.tables()["laplacian"]
+        eval_frames = [self.held_out[i] for i in eval_subset(self.held_out, c.eval_frames)]
+        train = self.subject.train
+        history: list = state["history"]
+        start_it, seconds = state["iteration"], state["seconds"]
+        last_eval = seconds if history else -math.inf
+        bar = _progress(c.iterations, start_it, self.progress)
+        train_psnr = None
+        it = start_it
+        while it < c.iterations:
+            tick = time.perf_counter()
+            epoch, slot = divmod(it, len(train))
+            row = int(frame_order(c.seed, epoch, len(train))[slot])
+            frame = train[row]
+            for group in maps_opt.param_groups:
+                group["lr"] = map_lr * uv_lr_factor(c, it)
+            row_params = F.embedding(torch.tensor([row]), avatar.frame_params, sparse=True)[0]
+            params = avatar.split_params(row_params)
+            render = avatar.render(
+                params,
+                frame.camera,
+                gaussians=self.gaussians,
+                occlusion_aware=c.occlusion_aware,
+                normals=self.use_normals,
+            )
+            loss = training_loss(
+                render,
+                frame,
+                lambda_ssim=c.lambda_ssim,
+                mesh_term=c.mesh_term,
+                lambda_normal=c.lambda_normal,
+                lambda_laplacian=c.lambda_laplacian,
+                laplacian=laplacian,
+                use_normals=self.use_normals,
+            )
+            loss.total.backward()
+            maps_opt.step()
+            frames_opt.step()
+            avatar.maps.grad = None
+            avatar.frame_params.grad = None
+            if self.adaptive:
+                accumulator.add(render.mesh.uv, pixel_error(render, frame))
+            if render.gaussians is not None:
+                max_radius = torch.maximum(max_radius, render.gaussians.radii.amax(-1))
+            it += 1
+            if self.gaussians and it % c.sample_every == 0 and it < c.iterations:
+                max_radius = self._resample(avatar, accumulator, surface, max_radius, it, frame)
+            seconds += time.perf_counter() - tick
+            with torch.no_grad():
+                value = float(psnr(render.image.clamp(0, 1), frame.image, frame.mask))
+            train_psnr = value if train_psnr is None else 0.9 * train_psnr + 0.1 * value
+            if seconds - last_eval >= c.eval_every_seconds or it == c.iterations:
+                held = evaluate_frames(avatar, eval_frames, mesh_only=False).psnr
+                history.append((round(seconds, 3), it, held))
+                last_eval = seconds
+                log.info("%.1f s, iteration %d: held-out PSNR %.2f dB", seconds, it, held)
+                bar.set_description(f"fit (held-out {held:.2f} dB)")
+            bar.set_postfix(loss=f"{float(loss.total):.4f}", psnr=f"{train_psnr:.2f}")
+            bar.update(1)
+            if it % c.checkpoint_every == 0 and it < c.iterations:
+                save_checkpoint(
+                    self.out,
+                    avatar,
+                    self._state(
+                        it, seconds, history, maps_opt, frames_opt, accumulator, max_radius
+                    ),
+                )
+        bar.close()
+        return self._finish(avatar, seconds, history)
+
+    def _state(self, it, seconds, history, maps_opt, frames_opt, accumulator, max_radius):
+        return {
+            "iteration": it,
+            "seconds": seconds,
+            "history": list(history),
+            "config": asdict(self.config),
+            "maps_opt": maps_opt.state_dict(),
+            "frames_opt": frames_opt.state_dict(),
+            "accumulator": accumulator.state(),
+            "max_radius": max_radius,
+        }
+
+    def _resample(self, avatar, accumulator, surface, max_radius, it, frame) -> torch.Tensor:
+        """Prunes faint or oversized Gaussians, then adds new ones where the UV error is
+        (or uniformly), within the per-round cap and the budget."""
+        c = self.config
+        with torch.no_grad():
+            at_gaussians = texture(avatar.maps, avatar.gaussian_uv)
+            opacity = torch.sigmoid(at_gaussians[:, avatar.layout.opacity])
+        side = max(frame.camera.width, frame.camera.height)
+        keep = (opacity >= c.prune_opacity) & (max_radius <= c.prune_screen_fraction * side)
+        uv = avatar.gaussian_uv[keep].numpy()
+        rng = np.random.default_rng([c.seed, 2, it])
+        room = min(c.sample_cap, c.max_gaussians - len(uv))
+        if self.adaptive:
+            new = accumulator.sample(room, surface, rng)
+            accumulator.reset()
+        else:
+            new = surface.uniform(max(room, 0), rng)
+        pruned = int((~keep).sum())
+        set_gaussians(avatar, surface, np.concatenate([uv, new]))
+        log.debug(
+            "iteration %d: pruned %d, added %d → %d", it, pruned, len(new), len(uv) + len(new)
+        )
+        return torch.zeros(avatar.num_gaussians, dtype=torch.int32)
+
+    def _finish(self, avatar: Avatar, seconds: float, history: list) -> FitResult:
+        c = self.config
+        avatar.maps.requires_grad_(False)
+        avatar.frame_params.requires_grad_(False)
+        scores = evaluate_frames(avatar, list(self.held_out), occlusion_aware=c.occlusion_aware)
+        metrics = {
+            "psnr": scores.psnr,
+            "ssim": scores.ssim,
+            "lpips": scores.lpips,
+            "psnr_mesh_only": scores.psnr_mesh_only,
+            "num_gaussians": avatar.num_gaussians,
+            "seconds": round(seconds, 2),
+            "iterations": c.iterations,
+            "held_out_frames": len(self.held_out),
+            "metric_region": "inside the foreground mask, on the subject's background",
+            "background": avatar.background.tolist(),
+        }
+        save_avatar(avatar, self.out / "avatar", extra={"config": asdict(c), "metrics": metrics})
+        _write_history(self.out / PSNR_CSV, history)
+        plot_psnr_vs_time(history, self.out / "psnr_vs_time.png", title=_title(c, avatar))
+        _atomic_text(self.out / "metrics.json", json.dumps(metrics, indent=2))
+        return FitResult(avatar, metrics, self.out)
+
+
+def _title(c: FitConfig, avatar: Avatar) -> str:
+    return (
+        f"held-out PSNR vs training time — maps {c.uv_resolution}², SH {c.sh_degree}, "
+        f"{avatar.num_gaussians} Gaussians"
+    )
+
+
+def _subject_background(subject) -> torch.Tensor:
+    """The subject's background colour: FORMATS.md's default white unless the subject's
+    metadata names another (synthetic subjects record theirs)."""
+    meta = subject.root / "synthetic.json"
+    if meta.is_file():
+        return torch.tensor(json.loads(meta.read_text())["background"], dtype=torch.float32)
+    return torch.ones(3)
+
+
+def _write_history(path: Path, history: list) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["seconds", "iteration", "psnr"])
+        writer.writerows(history)
+    tmp.replace(path)
+
+
+def _atomic_text(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    tmp.replace(path)
+
+
+def _progress(total: int, initial: int, enabled: bool):
+    from tqdm import tqdm
+
+    return tqdm(total=total, initial=initial, desc="fit", unit="it", disable=not enabled)
