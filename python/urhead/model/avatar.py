@@ -33,7 +33,7 @@ from urhead.ops import (
     rasterize_gaussians,
     texture,
 )
-from urhead.sh import sh_basis
+from urhead.sh import SH_C0, sh_basis
 
 POSE_SIZE = 15
 """FLAME pose: global, neck, jaw, left eye, right eye axis-angles."""
@@ -223,9 +223,10 @@ class Avatar:
         pixels = (raster.tri_id.reshape(-1) >= 0).nonzero()[:, 0]
         uv = uv_image.reshape(-1, 2)[pixels]
         samples = texture(self.maps, uv.contiguous())
-        sh = samples[:, layout.color].reshape(-1, layout.sh_coeffs, 3)
-        basis = self._pixel_basis(camera)[pixels]
-        rgb = ((basis[:, :, None] * sh).sum(1) + 0.5).clamp_min(0.0)
+        rot_image = interpolate(rotations.reshape(-1, 9), raster, t["faces"])
+        pixel_rot = rot_image.reshape(-1, 9)[pixels].reshape(-1, 3, 3)
+        rays = self._pixel_rays(camera)[pixels]
+        rgb = self._sh_color(samples[:, layout.color], rays, pixel_rot.detach())
         background = torch.cat([self.background, self.background.new_zeros(1)])
         flat = background.expand(h * w, 4).clone()
         flat = flat.index_put((pixels,), torch.cat([rgb, rgb.new_ones(rgb.shape[0], 1)], 1))
@@ -234,10 +235,7 @@ class Avatar:
         )
         normals = None
         if want_normals:
-            rot_image = interpolate(rotations.reshape(-1, 9), raster, t["faces"])
-            world = _rotate_normalize(
-                rot_image.reshape(-1, 9)[pixels].reshape(-1, 3, 3), samples[:, layout.normal]
-            )
+            world = _rotate_normalize(pixel_rot, samples[:, layout.normal])
             normals = world @ camera.viewmat[:3, :3].T
         return MeshRender(
             shaded[..., :3],
@@ -263,30 +261,46 @@ class Avatar:
         scales = samples[:, layout.scale].exp()
         opacities = torch.sigmoid(samples[:, layout.opacity])
         sh = samples[:, layout.color].reshape(-1, layout.sh_coeffs, 3)
+        rays = means.detach() - camera.center
+        rays = rays / rays.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        colors = self._sh_color(samples[:, layout.color], rays, rot.detach())
         out = rasterize_gaussians(
             means.contiguous(),
             quats.contiguous(),
             scales.contiguous(),
             opacities.contiguous(),
-            sh.contiguous(),
+            colors.contiguous(),
             camera,
             depth_map=depth_map,
             depth_eps=self.depth_eps,
-            sh_degree=layout.sh_degree,
         )
         return GaussianRender(
             out.image, out.transmittance, out.radii, means, quats, scales, opacities, sh
         )
 
-    def _pixel_basis(self, camera: Camera) -> torch.Tensor:
-        """(H·W, K) SH basis of each pixel's viewing ray. For a pinhole camera the direction
-        from the camera centre to the surface seen at a pixel is the pixel's ray, whatever
-        the geometry, so this is computed once per camera."""
+    def _sh_color(self, coeffs: torch.Tensor, rays: torch.Tensor, rotation: torch.Tensor):
+        """(P, 3) colours from (P, 3K) SH coefficients seen along world rays (P, 3), with
+        the view direction taken in the surface's rest frame (``rotation`` (P, 3, 3) the
+        skinning rotation, undone): view-dependent colour then follows the surface as the
+        head moves, and with a fixed camera it can absorb shading that changes with the
+        head's rotation. Degree 0 needs no direction."""
+        k = self.layout.sh_coeffs
+        if k == 1:
+            return (coeffs * SH_C0 + 0.5).clamp_min(0.0)
+        local = (rays[:, None, :] @ rotation)[:, 0]
+        local = local / local.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        basis = sh_basis(local, self.layout.sh_degree)
+        rgb = torch.bmm(basis[:, None, :], coeffs.reshape(-1, k, 3))[:, 0]
+        return (rgb + 0.5).clamp_min(0.0)
+
+    def _pixel_rays(self, camera: Camera) -> torch.Tensor:
+        """(H·W, 3) unit world directions of the pixels' rays (from the camera centre to
+        whatever surface a pixel sees), computed once per camera."""
         key = repr(camera.core_args())
-        cache = self.tables()["pixel_basis"]
+        cache = self.tables()["pixel_rays"]
         if key not in cache:
             cache.clear()
-            cache[key] = _ray_basis(camera, self.layout.sh_degree)
+            cache[key] = _pixel_rays(camera)
         return cache[key]
 
 
@@ -296,7 +310,7 @@ def _rotate_normalize(rotations: torch.Tensor, normals: torch.Tensor) -> torch.T
     return n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 
-def _ray_basis(camera: Camera, degree: int) -> torch.Tensor:
+def _pixel_rays(camera: Camera) -> torch.Tensor:
     h, w = camera.height, camera.width
     ys, xs = torch.meshgrid(
         torch.arange(h, dtype=torch.float64) + 0.5,
@@ -305,9 +319,8 @@ def _ray_basis(camera: Camera, degree: int) -> torch.Tensor:
     )
     k = camera.K.double()
     cam = torch.stack([(xs - k[0, 2]) / k[0, 0], (ys - k[1, 2]) / k[1, 1], torch.ones_like(xs)], -1)
-    world = cam.reshape(-1, 3) @ camera.viewmat[:3, :3].double()  # R^T applied to rows
-    world = world / world.norm(dim=-1, keepdim=True)
-    return sh_basis(world, degree).float().contiguous()
+    world = cam.reshape(-1, 3) @ camera.viewmat[:3, :3].double()  # Rᵀ applied to rows
+    return (world / world.norm(dim=-1, keepdim=True)).float().contiguous()
 
 
 def _build_tables(avatar: Avatar) -> dict:
@@ -334,5 +347,5 @@ def _build_tables(avatar: Avatar) -> dict:
         "vertex_uv": torch.tensor(head.vertex_uv),
         "topology": antialias_topology(faces, head.num_vertices),
         "laplacian": uniform_laplacian(faces, head.num_vertices),
-        "pixel_basis": {},
+        "pixel_rays": {},
     }

@@ -107,7 +107,9 @@ def build_avatar(
                 normals.append(vertex_normals(out.verts[0], faces))
         colors = project_colors(posed, frames, faces, uv_raster, normals)
     area = surface_area(rest, faces)
-    spacing = math.sqrt(area / max(initial_gaussians, 1))
+    # Half the mean spacing as the standard deviation: neighbours overlap without
+    # blurring the mesh colour they start from.
+    spacing = 0.5 * math.sqrt(area / max(initial_gaussians, 1))
     avatar.maps = initial_maps(layout, resolution, rest, faces, uv_raster, colors, spacing)
     if gaussians and initial_gaussians > 0:
         surface = UvSurface(head.uv_coords, head.uv_faces)

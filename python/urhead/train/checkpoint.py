@@ -5,6 +5,7 @@ the seed and the iteration, not of a live random state)."""
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import torch
@@ -42,3 +43,9 @@ def load_checkpoint(path: Path):
     avatar = load_avatar(path)
     state = torch.load(path / "state.pt", weights_only=True)
     return avatar, state
+
+
+def remove_checkpoints(out: Path) -> None:
+    """Deletes ``out/checkpoint`` and any leftover previous one."""
+    for p in [out / CHECKPOINT_DIR, *out.glob(f".{CHECKPOINT_DIR}.old-*")]:
+        shutil.rmtree(p, ignore_errors=True)

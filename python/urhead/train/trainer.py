@@ -28,7 +28,12 @@ from urhead.model import ErrorAccumulator, UvSurface, build_avatar, save_avatar,
 from urhead.model.avatar import Avatar
 from urhead.ops import texture
 from urhead.optim import SparseAdam
-from urhead.train.checkpoint import find_checkpoint, load_checkpoint, save_checkpoint
+from urhead.train.checkpoint import (
+    find_checkpoint,
+    load_checkpoint,
+    remove_checkpoints,
+    save_checkpoint,
+)
 from urhead.train.loss import pixel_error, training_loss
 from urhead.train.plots import plot_psnr_vs_time
 
@@ -228,7 +233,7 @@ class Trainer:
                 last_eval = seconds
                 log.info("%.1f s, iteration %d: held-out PSNR %.2f dB", seconds, it, held)
                 bar.set_description(f"fit (held-out {held:.2f} dB)")
-            bar.set_postfix(loss=f"{float(loss.total):.4f}", psnr=f"{train_psnr:.2f}")
+            bar.set_postfix(loss=f"{float(loss.total.detach()):.4f}", psnr=f"{train_psnr:.2f}")
             bar.update(1)
             if it % c.checkpoint_every == 0 and it < c.iterations:
                 save_checkpoint(
@@ -298,6 +303,7 @@ class Trainer:
         _write_history(self.out / PSNR_CSV, history)
         plot_psnr_vs_time(history, self.out / "psnr_vs_time.png", title=_title(c, avatar))
         _atomic_text(self.out / "metrics.json", json.dumps(metrics, indent=2))
+        remove_checkpoints(self.out)  # the avatar supersedes them (GBs at 2048²)
         return FitResult(avatar, metrics, self.out)
 
 
