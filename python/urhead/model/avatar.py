@@ -69,6 +69,25 @@ class MeshRender(NamedTuple):
     """(V, 3) displacement of each vertex, v̂ − v."""
 
 
+class GaussianLift(NamedTuple):
+    """The Gaussians of one frame, lifted from their UV points."""
+
+    means: torch.Tensor
+    """(N, 3) world positions."""
+    quats: torch.Tensor
+    """(N, 4) rotations (w, x, y, z), local z along the posed normal."""
+    scales: torch.Tensor
+    """(N, 3) standard deviations, metres."""
+    opacities: torch.Tensor
+    """(N,) opacities in (0, 1)."""
+    colors: torch.Tensor
+    """(N, 3) colours seen from this frame's camera."""
+    sh: torch.Tensor
+    """(N, K, 3) SH coefficients, in the surface's rest frame."""
+    frames: torch.Tensor
+    """(N, 3, 3) skinning rotation at each Gaussian (rest frame → world), detached."""
+
+
 class GaussianRender(NamedTuple):
     image: torch.Tensor
     """(H, W, 3) premultiplied Gaussian layer."""
@@ -76,16 +95,7 @@ class GaussianRender(NamedTuple):
     """(H, W) transmittance left after the Gaussians."""
     radii: torch.Tensor
     """(N, 2) int32 screen radii (0 = culled)."""
-    means: torch.Tensor
-    """(N, 3) world positions."""
-    quats: torch.Tensor
-    """(N, 4) rotations (w, x, y, z)."""
-    scales: torch.Tensor
-    """(N, 3) standard deviations, metres."""
-    opacities: torch.Tensor
-    """(N,) opacities in (0, 1)."""
-    sh: torch.Tensor
-    """(N, K, 3) SH coefficients."""
+    lift: GaussianLift
 
 
 class Render(NamedTuple):
@@ -191,32 +201,41 @@ class Avatar:
             occlusion_aware: skip Gaussian samples behind the mesh (depth + ``depth_eps``).
             normals: also return the mesh normals at covered pixels (for the normal loss).
         """
-        t = self.tables()
-        layout = self.layout
-        betas = params.expr[None]
-        skinned = lbs(
-            betas.contiguous(),
-            params.pose[None].contiguous(),
-            transl=params.transl[None].contiguous(),
-            **t["lbs"],
-        )
-        verts, rotations = skinned.verts[0], skinned.rotations[0]
-        mesh = self._render_mesh(verts, rotations, camera, normals)
-        if not (gaussians and layout.gaussians and self.num_gaussians > 0):
+        verts, rotations = self.skin(params)
+        displaced, offsets = self.displace(verts, rotations)
+        mesh = self.shade_mesh(displaced, offsets, rotations, camera, normals)
+        if not (gaussians and self.layout.gaussians and self.num_gaussians > 0):
             return Render(mesh.image, mesh, None)
-        splats = self._render_gaussians(
-            verts, rotations, camera, mesh.depth if occlusion_aware else None
-        )
+        lift = self.lift_gaussians(verts, rotations, camera)
+        splats = self.splat(lift, camera, mesh.depth if occlusion_aware else None)
         image = splats.image + splats.transmittance[..., None] * mesh.image
         return Render(image, mesh, splats)
 
-    def _render_mesh(self, verts, rotations, camera, want_normals) -> MeshRender:
-        t = self.tables()
+    # The stages of :meth:`render`, public so benchmarks and exporters can run them alone.
+
+    def skin(self, params: FlameParams) -> tuple[torch.Tensor, torch.Tensor]:
+        """FLAME skinning: ``(verts (V, 3), rotations (V, 3, 3))``."""
+        skinned = lbs(
+            params.expr[None].contiguous(),
+            params.pose[None].contiguous(),
+            transl=params.transl[None].contiguous(),
+            **self.tables()["lbs"],
+        )
+        return skinned.verts[0], skinned.rotations[0]
+
+    def displace(self, verts, rotations) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(v̂ (V, 3), v̂ − v)``: each vertex moved by D along its posed normal."""
         layout = self.layout
-        at_vertex = texture(self.maps, t["vertex_uv"])
+        at_vertex = texture(self.maps, self.tables()["vertex_uv"])
         vertex_normal = _rotate_normalize(rotations, at_vertex[:, layout.normal])
         offsets = at_vertex[:, layout.displacement, None] * vertex_normal
-        displaced = verts + offsets
+        return verts + offsets, offsets
+
+    def shade_mesh(self, displaced, offsets, rotations, camera, want_normals) -> MeshRender:
+        """The mesh branch: rasterize, look the maps up at covered pixels, SH colour,
+        antialias over the background."""
+        t = self.tables()
+        layout = self.layout
         raster = rasterize(displaced, t["faces"], camera)
         uv_image = interpolate(t["uv_coords"], raster, t["uv_faces"])
         h, w = camera.height, camera.width
@@ -248,35 +267,44 @@ class Avatar:
             offsets,
         )
 
-    def _render_gaussians(self, verts, rotations, camera, depth_map) -> GaussianRender:
+    def lift_gaussians(self, verts, rotations, camera) -> GaussianLift:
+        """Each Gaussian's attributes from its UV point: position P + D·n on the posed
+        surface, rotation from the posed normal, scale, opacity and colour from the maps."""
         layout = self.layout
         face_verts = self.tables()["faces_long"][self.gaussian_face]  # (N, 3)
         bary = self.gaussian_bary[:, :, None]
         surface = (verts[face_verts] * bary).sum(1)
-        rot = (rotations[face_verts] * bary[..., None]).sum(1)
+        frames = (rotations[face_verts] * bary[..., None]).sum(1)
         samples = texture(self.maps, self.gaussian_uv)
-        normal = _rotate_normalize(rot, samples[:, layout.normal])
+        normal = _rotate_normalize(frames, samples[:, layout.normal])
         means = surface + samples[:, layout.displacement, None] * normal
-        quats = normal_to_quat(normal)
-        scales = samples[:, layout.scale].exp()
-        opacities = torch.sigmoid(samples[:, layout.opacity])
         sh = samples[:, layout.color].reshape(-1, layout.sh_coeffs, 3)
         rays = means.detach() - camera.center
         rays = rays / rays.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        colors = self._sh_color(samples[:, layout.color], rays, rot.detach())
+        return GaussianLift(
+            means=means,
+            quats=normal_to_quat(normal),
+            scales=samples[:, layout.scale].exp(),
+            opacities=torch.sigmoid(samples[:, layout.opacity]),
+            colors=self._sh_color(samples[:, layout.color], rays, frames.detach()),
+            sh=sh,
+            frames=frames.detach(),
+        )
+
+    def splat(self, lift: GaussianLift, camera, depth_map) -> GaussianRender:
+        """Occlusion-aware splatting of lifted Gaussians (no occlusion with ``depth_map``
+        None)."""
         out = rasterize_gaussians(
-            means.contiguous(),
-            quats.contiguous(),
-            scales.contiguous(),
-            opacities.contiguous(),
-            colors.contiguous(),
+            lift.means.contiguous(),
+            lift.quats.contiguous(),
+            lift.scales.contiguous(),
+            lift.opacities.contiguous(),
+            lift.colors.contiguous(),
             camera,
             depth_map=depth_map,
             depth_eps=self.depth_eps,
         )
-        return GaussianRender(
-            out.image, out.transmittance, out.radii, means, quats, scales, opacities, sh
-        )
+        return GaussianRender(out.image, out.transmittance, out.radii, lift)
 
     def _sh_color(self, coeffs: torch.Tensor, rays: torch.Tensor, rotation: torch.Tensor):
         """(P, 3) colours from (P, 3K) SH coefficients seen along world rays (P, 3), with

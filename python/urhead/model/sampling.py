@@ -21,6 +21,8 @@ class UvSurface:
 
     def uniform(self, n: int, rng: np.random.Generator) -> np.ndarray:
         """(n, 2) float32 points uniform over the atlas' UV area (rejection sampling)."""
+        if n <= 0:
+            return np.zeros((0, 2), np.float32)
         out = []
         have = 0
         while have < n:

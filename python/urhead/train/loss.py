@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import numpy as np
 import torch
 
 from urhead.losses import laplacian_loss, ssim
@@ -75,8 +76,40 @@ def normal_loss(render: Render, frame) -> torch.Tensor:
     return (diff * weight).sum() / weight.sum().clamp_min(1)
 
 
-def pixel_error(render: Render, frame) -> torch.Tensor:
-    """(P,) per-pixel ‖I − I_gt‖₁ at the mesh's covered pixels, inside the mask (for the
-    UV error map)."""
-    diff = (render.image.detach() - frame.image).abs().sum(-1) * frame.mask
-    return diff.reshape(-1)[render.mesh.pixels]
+def uv_error_samples(render: Render, frame) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-pixel photometric error ‖I − I_gt‖₁ inside the mask, paired with the UV
+    coordinate it is charged to: a covered pixel's own UV; a pixel inside the mask that the
+    mesh misses (hair volume, a silhouette the mesh has not reached) is charged to the
+    nearest covered pixel, so that error draws Gaussians to the surface next to it.
+
+    Returns ``(uv (Q, 2), error (Q,))``.
+    """
+    h, w = frame.mask.shape
+    error = ((render.image.detach() - frame.image).abs().sum(-1) * frame.mask).reshape(-1)
+    pixels = render.mesh.pixels
+    if pixels.numel() == 0:
+        return render.mesh.uv, error[:0]
+    covered = torch.zeros(h * w, dtype=torch.bool)
+    covered[pixels] = True
+    missed = ((frame.mask.reshape(-1) > 0.5) & ~covered).nonzero()[:, 0]
+    if missed.numel() == 0:
+        return render.mesh.uv, error[pixels]
+    nearest = nearest_pixel(covered.reshape(h, w))[missed]
+    slot = torch.empty(h * w, dtype=torch.int64)
+    slot[pixels] = torch.arange(pixels.numel())
+    uv = torch.cat([render.mesh.uv, render.mesh.uv[slot[nearest]]])
+    return uv, torch.cat([error[pixels], error[missed]])
+
+
+def nearest_pixel(covered: torch.Tensor) -> torch.Tensor:
+    """(H·W,) int64: for every pixel, the flat index of the nearest ``covered`` pixel
+    (itself when covered); needs at least one covered pixel."""
+    import cv2
+
+    free = (~covered).numpy().astype(np.uint8)
+    _, labels = cv2.distanceTransformWithLabels(
+        free, cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_PIXEL
+    )
+    # Labels number the zero (covered) pixels 1, 2, … in scan order.
+    seeds = covered.reshape(-1).nonzero()[:, 0]
+    return seeds[torch.from_numpy(labels.reshape(-1).astype(np.int64)) - 1]

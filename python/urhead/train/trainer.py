@@ -25,7 +25,7 @@ from urhead.config import FitConfig
 from urhead.eval import evaluate_frames
 from urhead.losses import psnr
 from urhead.model import ErrorAccumulator, UvSurface, build_avatar, save_avatar, set_gaussians
-from urhead.model.avatar import Avatar
+from urhead.model.avatar import Avatar, Render
 from urhead.ops import texture
 from urhead.optim import SparseAdam
 from urhead.train.checkpoint import (
@@ -34,12 +34,28 @@ from urhead.train.checkpoint import (
     remove_checkpoints,
     save_checkpoint,
 )
-from urhead.train.loss import pixel_error, training_loss
+from urhead.train.loss import training_loss, uv_error_samples
 from urhead.train.plots import plot_psnr_vs_time
 
 log = logging.getLogger("urhead.fit")
 
 PSNR_CSV = "psnr_vs_time.csv"
+
+
+@dataclass
+class FitState:
+    """What the loop carries between iterations (and what a checkpoint restores)."""
+
+    avatar: Avatar
+    maps_opt: SparseAdam
+    frames_opt: SparseAdam
+    map_lr: torch.Tensor
+    accumulator: ErrorAccumulator
+    surface: UvSurface
+    max_radius: torch.Tensor
+    iteration: int
+    seconds: float
+    history: list
 
 
 @dataclass
@@ -152,135 +168,157 @@ class Trainer:
 
     # --- the loop ------------------------------------------------------------------
 
-    def run(self, resume: bool = False) -> FitResult:
+    def start(self, resume: bool = False) -> FitState:
+        """The state the loop starts from: the last checkpoint (with ``resume``) or a new
+        avatar."""
         c = self.config
         self.out.mkdir(parents=True, exist_ok=True)
         checkpoint = find_checkpoint(self.out) if resume else None
         if checkpoint is not None:
-            avatar, state = load_checkpoint(checkpoint)
-            if state["config"] != asdict(c):
+            avatar, saved = load_checkpoint(checkpoint)
+            if saved["config"] != asdict(c):
                 raise ValueError(
                     f"{checkpoint}: was written with a different configuration; "
                     "resume with the same options or start a new --out"
                 )
-            log.info("resuming from %s at iteration %d", checkpoint, state["iteration"])
+            log.info("resuming from %s at iteration %d", checkpoint, saved["iteration"])
         else:
-            avatar, state = self._new_state()
+            avatar, saved = self._new_state()
         self._describe(avatar)
         maps_opt, frames_opt, map_lr = self._optimizers(avatar)
-        accumulator = ErrorAccumulator(min(c.error_grid, c.uv_resolution))
-        surface = UvSurface(self.head.uv_coords, self.head.uv_faces)
-        max_radius = torch.zeros(avatar.num_gaussians, dtype=torch.int32)
-        if "maps_opt" in state:
-            maps_opt.load_state_dict(state["maps_opt"])
-            frames_opt.load_state_dict(state["frames_opt"])
-            accumulator.load_state(state["accumulator"])
-            max_radius = state["max_radius"]
-        laplacian = avatar.tables()["laplacian"]
-        eval_frames = [self.held_out[i] for i in eval_subset(self.held_out, c.eval_frames)]
+        state = FitState(
+            avatar=avatar,
+            maps_opt=maps_opt,
+            frames_opt=frames_opt,
+            map_lr=map_lr,
+            accumulator=ErrorAccumulator(min(c.error_grid, c.uv_resolution)),
+            surface=UvSurface(self.head.uv_coords, self.head.uv_faces),
+            max_radius=torch.zeros(avatar.num_gaussians, dtype=torch.int32),
+            iteration=saved["iteration"],
+            seconds=saved["seconds"],
+            history=list(saved["history"]),
+        )
+        if "maps_opt" in saved:
+            maps_opt.load_state_dict(saved["maps_opt"])
+            frames_opt.load_state_dict(saved["frames_opt"])
+            state.accumulator.load_state(saved["accumulator"])
+            state.max_radius = saved["max_radius"]
+        return state
+
+    def step(self, state: FitState) -> tuple[torch.Tensor, Render, object]:
+        """One training iteration (DESIGN.md steps 1–9) on the frame the schedule picks;
+        returns ``(loss, render, frame)``."""
+        c = self.config
+        avatar = state.avatar
         train = self.subject.train
-        history: list = state["history"]
-        start_it, seconds = state["iteration"], state["seconds"]
-        last_eval = seconds if history else -math.inf
-        bar = _progress(c.iterations, start_it, self.progress)
+        it = state.iteration
+        epoch, slot = divmod(it, len(train))
+        row = int(frame_order(c.seed, epoch, len(train))[slot])
+        frame = train[row]
+        for group in state.maps_opt.param_groups:
+            group["lr"] = state.map_lr * uv_lr_factor(c, it)
+        row_params = F.embedding(torch.tensor([row]), avatar.frame_params, sparse=True)[0]
+        render = avatar.render(
+            avatar.split_params(row_params),
+            frame.camera,
+            gaussians=self.gaussians,
+            occlusion_aware=c.occlusion_aware,
+            normals=self.use_normals,
+        )
+        loss = training_loss(
+            render,
+            frame,
+            lambda_ssim=c.lambda_ssim,
+            mesh_term=c.mesh_term,
+            lambda_normal=c.lambda_normal,
+            lambda_laplacian=c.lambda_laplacian,
+            laplacian=avatar.tables()["laplacian"],
+            use_normals=self.use_normals,
+        )
+        loss.total.backward()
+        state.maps_opt.step()
+        state.frames_opt.step()
+        avatar.maps.grad = None
+        avatar.frame_params.grad = None
+        if self.adaptive:
+            state.accumulator.add(*uv_error_samples(render, frame))
+        if render.gaussians is not None:
+            radius = render.gaussians.radii.amax(-1)
+            state.max_radius = torch.maximum(state.max_radius, radius)
+        state.iteration = it = it + 1
+        if self.gaussians and it % c.sample_every == 0 and it < c.iterations:
+            self._resample(state, frame)
+        return loss.total.detach(), render, frame
+
+    def run(self, resume: bool = False) -> FitResult:
+        """Trains to ``config.iterations`` (from the last checkpoint with ``resume``),
+        then scores the held-out frames and writes the outputs."""
+        c = self.config
+        state = self.start(resume)
+        eval_frames = [self.held_out[i] for i in eval_subset(self.held_out, c.eval_frames)]
+        last_eval = state.seconds if state.history else -math.inf
+        bar = _progress(c.iterations, state.iteration, self.progress)
         train_psnr = None
-        it = start_it
-        while it < c.iterations:
+        while state.iteration < c.iterations:
             tick = time.perf_counter()
-            epoch, slot = divmod(it, len(train))
-            row = int(frame_order(c.seed, epoch, len(train))[slot])
-            frame = train[row]
-            for group in maps_opt.param_groups:
-                group["lr"] = map_lr * uv_lr_factor(c, it)
-            row_params = F.embedding(torch.tensor([row]), avatar.frame_params, sparse=True)[0]
-            params = avatar.split_params(row_params)
-            render = avatar.render(
-                params,
-                frame.camera,
-                gaussians=self.gaussians,
-                occlusion_aware=c.occlusion_aware,
-                normals=self.use_normals,
-            )
-            loss = training_loss(
-                render,
-                frame,
-                lambda_ssim=c.lambda_ssim,
-                mesh_term=c.mesh_term,
-                lambda_normal=c.lambda_normal,
-                lambda_laplacian=c.lambda_laplacian,
-                laplacian=laplacian,
-                use_normals=self.use_normals,
-            )
-            loss.total.backward()
-            maps_opt.step()
-            frames_opt.step()
-            avatar.maps.grad = None
-            avatar.frame_params.grad = None
-            if self.adaptive:
-                accumulator.add(render.mesh.uv, pixel_error(render, frame))
-            if render.gaussians is not None:
-                max_radius = torch.maximum(max_radius, render.gaussians.radii.amax(-1))
-            it += 1
-            if self.gaussians and it % c.sample_every == 0 and it < c.iterations:
-                max_radius = self._resample(avatar, accumulator, surface, max_radius, it, frame)
-            seconds += time.perf_counter() - tick
+            loss, render, frame = self.step(state)
+            state.seconds += time.perf_counter() - tick
+            it = state.iteration
             with torch.no_grad():
                 value = float(psnr(render.image.clamp(0, 1), frame.image, frame.mask))
             train_psnr = value if train_psnr is None else 0.9 * train_psnr + 0.1 * value
-            if seconds - last_eval >= c.eval_every_seconds or it == c.iterations:
-                held = evaluate_frames(avatar, eval_frames, mesh_only=False).psnr
-                history.append((round(seconds, 3), it, held))
-                last_eval = seconds
-                log.info("%.1f s, iteration %d: held-out PSNR %.2f dB", seconds, it, held)
+            if state.seconds - last_eval >= c.eval_every_seconds or it == c.iterations:
+                held = evaluate_frames(state.avatar, eval_frames, mesh_only=False).psnr
+                state.history.append((round(state.seconds, 3), it, held))
+                last_eval = state.seconds
+                log.info("%.1f s, iteration %d: held-out PSNR %.2f dB", state.seconds, it, held)
                 bar.set_description(f"fit (held-out {held:.2f} dB)")
-            bar.set_postfix(loss=f"{float(loss.total.detach()):.4f}", psnr=f"{train_psnr:.2f}")
+            bar.set_postfix(loss=f"{float(loss):.4f}", psnr=f"{train_psnr:.2f}")
             bar.update(1)
             if it % c.checkpoint_every == 0 and it < c.iterations:
-                save_checkpoint(
-                    self.out,
-                    avatar,
-                    self._state(
-                        it, seconds, history, maps_opt, frames_opt, accumulator, max_radius
-                    ),
-                )
+                save_checkpoint(self.out, state.avatar, self._checkpoint_state(state))
         bar.close()
-        return self._finish(avatar, seconds, history)
+        return self._finish(state.avatar, state.seconds, state.history)
 
-    def _state(self, it, seconds, history, maps_opt, frames_opt, accumulator, max_radius):
+    def _checkpoint_state(self, state: FitState) -> dict:
         return {
-            "iteration": it,
-            "seconds": seconds,
-            "history": list(history),
+            "iteration": state.iteration,
+            "seconds": state.seconds,
+            "history": list(state.history),
             "config": asdict(self.config),
-            "maps_opt": maps_opt.state_dict(),
-            "frames_opt": frames_opt.state_dict(),
-            "accumulator": accumulator.state(),
-            "max_radius": max_radius,
+            "maps_opt": state.maps_opt.state_dict(),
+            "frames_opt": state.frames_opt.state_dict(),
+            "accumulator": state.accumulator.state(),
+            "max_radius": state.max_radius,
         }
 
-    def _resample(self, avatar, accumulator, surface, max_radius, it, frame) -> torch.Tensor:
+    def _resample(self, state: FitState, frame) -> None:
         """Prunes faint or oversized Gaussians, then adds new ones where the UV error is
         (or uniformly), within the per-round cap and the budget."""
         c = self.config
+        avatar = state.avatar
         with torch.no_grad():
             at_gaussians = texture(avatar.maps, avatar.gaussian_uv)
             opacity = torch.sigmoid(at_gaussians[:, avatar.layout.opacity])
         side = max(frame.camera.width, frame.camera.height)
-        keep = (opacity >= c.prune_opacity) & (max_radius <= c.prune_screen_fraction * side)
+        keep = (opacity >= c.prune_opacity) & (state.max_radius <= c.prune_screen_fraction * side)
         uv = avatar.gaussian_uv[keep].numpy()
-        rng = np.random.default_rng([c.seed, 2, it])
-        room = min(c.sample_cap, c.max_gaussians - len(uv))
+        rng = np.random.default_rng([c.seed, 2, state.iteration])
+        room = max(min(c.sample_cap, c.max_gaussians - len(uv)), 0)
         if self.adaptive:
-            new = accumulator.sample(room, surface, rng)
-            accumulator.reset()
+            new = state.accumulator.sample(room, state.surface, rng)
+            state.accumulator.reset()
         else:
-            new = surface.uniform(max(room, 0), rng)
-        pruned = int((~keep).sum())
-        set_gaussians(avatar, surface, np.concatenate([uv, new]))
+            new = state.surface.uniform(room, rng)
+        set_gaussians(avatar, state.surface, np.concatenate([uv, new]))
+        state.max_radius = torch.zeros(avatar.num_gaussians, dtype=torch.int32)
         log.debug(
-            "iteration %d: pruned %d, added %d → %d", it, pruned, len(new), len(uv) + len(new)
+            "iteration %d: pruned %d, added %d → %d",
+            state.iteration,
+            int((~keep).sum()),
+            len(new),
+            avatar.num_gaussians,
         )
-        return torch.zeros(avatar.num_gaussians, dtype=torch.int32)
 
     def _finish(self, avatar: Avatar, seconds: float, history: list) -> FitResult:
         c = self.config
