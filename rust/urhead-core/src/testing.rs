@@ -127,6 +127,9 @@ pub fn record_stability(case: u32, check: &str, test: &str, worst: f64, toleranc
             json_number(tolerance)
         );
         // One write per line on an O_APPEND file: lines from parallel tests do not interleave.
+        if let Some(dir) = std::path::Path::new(&path).parent() {
+            std::fs::create_dir_all(dir).ok();
+        }
         let mut file = std::fs::OpenOptions::new()
             .create(true)
             .append(true)
