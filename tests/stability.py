@@ -333,9 +333,9 @@ def render_report(
         "```",
         "",
         "Each row is a check an extreme-case test ran in this run, the worst error it observed "
-        "(over all parametrisations of the tests listed) and the bound the test asserts. "
-        "Tolerances were set from the worst error seen when the test was written, never widened "
-        "to pass. A check without an error figure (an exception raised, a set of pixels "
+        "(over all parametrisations of the tests listed) and the bound the test asserts "
+        "(the project sets bounds from observed worst errors and never widens one to pass). "
+        "A check without an error figure (an exception raised, a set of pixels "
         "covered exactly) shows how many inputs it covered. A case passes only if every check "
         "held and every test listed for it passed; a case no test recorded a check for is "
         "MISSING. The cases are those of NUMERICS.md (design notes shared by the project).",
