@@ -27,11 +27,11 @@ def patch_rows(count: int, generator) -> torch.Tensor:
     return rows[:count]
 
 
-def sparse_timings(generator) -> list[tuple[str, float]]:
+def sparse_timings(generator, touched_counts=(20_000, 100_000, 400_000)) -> list[tuple[str, float]]:
     param = torch.zeros(SIDE, SIDE, CHANNELS)
     opt = SparseAdam([param], lr=1e-3)
     timings = []
-    for touched in (20_000, 100_000, 400_000):
+    for touched in touched_counts:
         rows = patch_rows(touched, generator)
         values = torch.randn(touched, CHANNELS, generator=generator)
         index = torch.stack([rows // SIDE, rows % SIDE])
@@ -45,13 +45,19 @@ def sparse_timings(generator) -> list[tuple[str, float]]:
     return timings
 
 
-def main():
-    print(f"UV atlas {SIDE}² × {CHANNELS} float32, {num_threads()} threads")
+def measure(touched_counts=(20_000, 100_000, 400_000), dense_repeats: int = 5):
+    """``(sparse rows [(case, ms)], dense torch.optim.Adam step ms)``, medians."""
     generator = torch.Generator().manual_seed(0)
-    sparse = sparse_timings(generator)
+    sparse = sparse_timings(generator, touched_counts)
     dense = torch.zeros(SIDE, SIDE, CHANNELS, requires_grad=True)
     dense.grad = torch.randn(SIDE, SIDE, CHANNELS, generator=generator)
-    dense_ms = median_ms(torch.optim.Adam([dense], lr=1e-3).step, repeats=5, warmup=1)
+    dense_ms = median_ms(torch.optim.Adam([dense], lr=1e-3).step, repeats=dense_repeats, warmup=1)
+    return sparse, dense_ms
+
+
+def main():
+    print(f"UV atlas {SIDE}² × {CHANNELS} float32, {num_threads()} threads")
+    sparse, dense_ms = measure()
     report([(name, ms, dense_ms) for name, ms in sparse])
     print(f"(torch ms: one dense torch.optim.Adam step over the whole atlas, {dense_ms:.0f} ms)")
 

@@ -35,16 +35,27 @@ def case(fn, model, batch):
     return forward, forward_backward
 
 
-def main():
+def measure(batches=(1, 16), repeats: int = 30) -> list[tuple[str, float, float]]:
+    """``(case, urhead ms, torch-reference ms)`` medians, forward and forward+backward."""
     model = make_skinned_model(num_verts=5023, num_betas=400, dtype=torch.float32)
-    print(f"LBS at FLAME size, float32, {num_threads()} threads")
     rows = []
-    for batch in (1, 16):
+    for batch in batches:
         ours_f, ours_fb = case(lbs, model, batch)
         ref_f, ref_fb = case(_reference.lbs, model, batch)
-        rows.append((f"forward B={batch}", median_ms(ours_f), median_ms(ref_f)))
-        rows.append((f"forward+backward B={batch}", median_ms(ours_fb), median_ms(ref_fb)))
-    report(rows)
+        rows.append((f"forward B={batch}", median_ms(ours_f, repeats), median_ms(ref_f, repeats)))
+        rows.append(
+            (
+                f"forward+backward B={batch}",
+                median_ms(ours_fb, repeats),
+                median_ms(ref_fb, repeats),
+            )
+        )
+    return rows
+
+
+def main():
+    print(f"LBS at FLAME size, float32, {num_threads()} threads")
+    report(measure())
 
 
 if __name__ == "__main__":

@@ -171,6 +171,18 @@ def per_op(scene, impl, repeats):
     return {k: statistics.median(v) for k, v in timings.items()}
 
 
+OPS = ("rasterize", "interpolate", "texture", "antialias")
+
+
+def measure_ops(scene, impl, repeats) -> dict[str, float]:
+    """Median forward+backward ms of each op inside the chain (its forward stage plus the
+    backward stage that ends when its backward has run), and of the whole chain."""
+    stages = per_op(scene, impl, repeats)
+    ops_ms = {op: stages[op] + stages[f"{op}_bwd"] for op in OPS}
+    ops_ms["chain"] = sum(stages.values())
+    return ops_ms
+
+
 def report(title, ops_ms):
     print(f"  {title}")
     for name, ms in ops_ms.items():

@@ -120,23 +120,33 @@ OMEGA_AXIS = torch.tensor([0.36, -0.48, 0.8], dtype=torch.float64)
 
 @pytest.mark.parametrize("theta", [0.0, 1e-12, 1e-8, 1e-4, 2.4e-4, 1e-2])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_case22_small_angles(theta, dtype):
+def test_case22_small_angles(theta, dtype, stability):
     m = single_joint_model(dtype)
     omega = OMEGA_AXIS * theta
     rot = root_rotation(m, omega.to(dtype)).double()
     eye = torch.eye(3, dtype=torch.float64)
     tol = 1e-6 if dtype == torch.float32 else 1e-15
+    name = str(dtype)[6:]
+    ortho_err = (rot.T @ rot - eye).abs().max()
+    stability.record(22, f"max abs RᵀR − I ({name})", ortho_err, tol)
     assert (rot.T @ rot - eye).abs().max() < tol
     k = hat(omega)
     second_order = eye + k + k @ k / 2  # exact to θ³, which is below f64 resolution here
+    ref_err = (rot - ref.axis_angle_to_matrix(omega)).abs().max()
+    stability.record(22, f"max abs R error vs float64 reference ({name})", ref_err, tol)
     assert (rot - ref.axis_angle_to_matrix(omega)).abs().max() < tol
     if theta <= 1e-4:
+        second_err = (rot - second_order).abs().max()
+        bound = max(tol, theta**3)
+        stability.record(22, f"θ ≤ 1e-4: max abs R − (I + K + K²/2) ({name})", second_err, bound)
         assert (rot - second_order).abs().max() < max(tol, theta**3)
 
 
-def test_case22_negative_tiny_and_generator_at_zero():
+def test_case22_negative_tiny_and_generator_at_zero(stability):
     m = single_joint_model()
     omega = torch.full((3,), -1e-8, dtype=torch.float64)
+    err = (root_rotation(m, omega) - ref.axis_angle_to_matrix(omega)).abs().max()
+    stability.record(22, "ω = −1e-8·(1, 1, 1): max abs R error vs reference", err, 1e-16)
     assert (root_rotation(m, omega) - ref.axis_angle_to_matrix(omega)).abs().max() < 1e-16
     jac = torch.autograd.functional.jacobian(
         lambda w: root_rotation(m, w), torch.zeros(3, dtype=torch.float64)
@@ -144,49 +154,95 @@ def test_case22_negative_tiny_and_generator_at_zero():
     for k in range(3):
         e = torch.zeros(3, dtype=torch.float64)
         e[k] = 1
+        stability.record(
+            22, "ω = 0: max abs dR/dω_k − hat(e_k)", (jac[..., k] - hat(e)).abs().max(), 0
+        )
         assert torch.equal(jac[..., k], hat(e))
 
 
 @pytest.mark.parametrize("theta", [1e-4, 2.4e-4, 9.99e-3, 1.001e-2, 0.3])
-def test_case22_gradients_finite_differences_near_taylor_switch(theta):
+def test_case22_gradients_finite_differences_near_taylor_switch(theta, stability):
     m = single_joint_model()
     omega = (OMEGA_AXIS * theta).requires_grad_()
+    # The figure gradcheck tests: analytic Jacobian vs central differences with its eps.
+    jac = torch.autograd.functional.jacobian(lambda w: root_rotation(m, w), omega.detach())
+    steps = torch.eye(3, dtype=torch.float64) * 1e-7
+    fd = torch.stack(
+        [(root_rotation(m, omega + s) - root_rotation(m, omega - s)) / 2e-7 for s in steps], -1
+    ).detach()
+    stability.close(
+        22, "Jacobian vs central differences near the Taylor switch", jac, fd, 1e-6, 1e-9
+    )
     assert torch.autograd.gradcheck(
         lambda w: root_rotation(m, w), (omega,), eps=1e-7, atol=1e-9, rtol=1e-6
     )
 
 
 @pytest.mark.parametrize("theta", [math.pi - 1e-6, math.pi + 1e-6, 2 * math.pi, 10 * math.pi])
-def test_case23_large_angles_finite_and_match_reference(theta):
+def test_case23_large_angles_finite_and_match_reference(theta, stability):
     m = single_joint_model()
     omega = (OMEGA_AXIS * theta).requires_grad_()
     rot = root_rotation(m, omega)
     assert torch.isfinite(rot).all()
+    err = (rot - ref.axis_angle_to_matrix(omega)).abs().max()
+    stability.record(23, "max abs R error vs float64 reference", err, 1e-14)
     assert (rot - ref.axis_angle_to_matrix(omega)).abs().max() < 1e-14
     (grad,) = torch.autograd.grad(rot.sum(), omega)
     (expect,) = torch.autograd.grad(ref.axis_angle_to_matrix(omega).sum(), omega)
     assert torch.isfinite(grad).all()
+    stability.record(
+        23, "max abs dR/dω error vs reference autograd", (grad - expect).abs().max(), 1e-12
+    )
     assert (grad - expect).abs().max() < 1e-12
 
 
-def test_case24_zero_pose_gives_shaped_template():
+def test_case24_zero_pose_gives_shaped_template(stability):
     m = make_skinned_model(dyadic_weights=True, seed=7)
     betas = torch.zeros(1, m.shapedirs.shape[2], dtype=torch.float64)
     pose = torch.zeros(1, 15, dtype=torch.float64)
     out = lbs(betas, pose, *m.tables())
+    exact_err = (out.verts[0] - m.v_template).abs().max()
+    stability.record(24, "zero pose, zero betas: max abs vertex − template", exact_err, 0)
     assert torch.equal(out.verts[0], m.v_template)  # bit for bit
     betas = torch.randn(1, m.shapedirs.shape[2], dtype=torch.float64)
     out = lbs(betas, pose, *m.tables())
     shaped = m.v_template + torch.einsum("l,vcl->vc", betas[0], m.shapedirs)
+    shaped_err = (out.verts[0] - shaped).abs().max()
+    stability.record(24, "zero pose: max abs vertex − (template + blendshapes)", shaped_err, 1e-15)
     assert (out.verts[0] - shaped).abs().max() < 1e-15
 
 
-def test_case24_large_poses_on_all_joints():
+def test_case24_large_poses_on_all_joints(stability):
     m32 = make_skinned_model(dtype=torch.float32, seed=8)
     m64 = make_skinned_model(dtype=torch.float64, seed=8)
     b64 = inputs(m64, batch=4, pose_scale=4.0, seed=9, requires_grad=False)
     b32 = [t.float() for t in b64]
     out = lbs(b32[0], b32[1], *m32.tables(), transl=b32[2])
     expect = ref.lbs(b64[0], b64[1], *m64.tables(), transl=b64[2])
+    err = max(
+        (out.verts.double() - expect.verts).abs().max(),
+        (out.joints.double() - expect.joints).abs().max(),
+    )
+    stability.record(
+        24, "large poses, float32: max abs vertex/joint error vs float64 reference", err, 1e-6
+    )
     assert (out.verts.double() - expect.verts).abs().max() < 1e-6
     assert (out.joints.double() - expect.joints).abs().max() < 1e-6
+    # Float64 gradients at the same poses against central differences, per input.
+    leaves = [t.clone().requires_grad_(True) for t in b64]
+    grads = torch.autograd.grad(
+        weighted_loss(lbs(leaves[0], leaves[1], *m64.tables(), transl=leaves[2])), leaves
+    )
+    g = torch.Generator().manual_seed(10)
+    h = 1e-6
+    for k, name in enumerate(("shape and expression", "pose", "translation")):
+        d = torch.randn(b64[k].shape, generator=g, dtype=torch.float64)
+
+        def loss(t, k=k, d=d):
+            args = list(b64)
+            args[k] = b64[k] + t * d
+            return float(weighted_loss(lbs(args[0], args[1], *m64.tables(), transl=args[2])))
+
+        fd = (loss(h) - loss(-h)) / (2 * h)
+        fd_err = abs(float((grads[k] * d).sum()) - fd) / max(1.0, abs(fd))
+        stability.record(24, f"large poses: {name} gradient vs central differences", fd_err, 1e-8)

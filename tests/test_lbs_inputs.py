@@ -42,21 +42,23 @@ def m():
 
 @pytest.mark.parametrize("arg", ["betas", "pose", "transl"])
 @pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
-def test_non_finite_per_call_inputs_are_named(m, arg, bad):
+def test_non_finite_per_call_inputs_are_named(m, arg, bad, stability):
     kwargs = {"betas": torch.zeros(2, 4), "pose": torch.zeros(2, 15), "transl": torch.zeros(2, 3)}
     kwargs[arg][1, 1] = bad
     with pytest.raises(NonFiniteError, match=f"^{arg} must be finite"):
         call(m, **kwargs)
+    stability.checked(26, "skinning: NaN/±inf in betas, pose, transl → NonFiniteError naming it")
 
 
 @pytest.mark.parametrize(
     "arg", ["v_template", "shapedirs", "posedirs", "j_regressor", "lbs_weights"]
 )
-def test_non_finite_model_tables_are_named(m, arg):
+def test_non_finite_model_tables_are_named(m, arg, stability):
     table = getattr(m, arg).clone()
     table.view(-1)[5] = float("nan")
     with pytest.raises(NonFiniteError, match=f"^{arg} must be finite"):
         call(m, betas=torch.ones(2, 4), pose=torch.full((2, 15), 0.1), **{arg: table})
+    stability.checked(26, "skinning: NaN in a model table → NonFiniteError naming it")
 
 
 @pytest.mark.parametrize(
@@ -75,12 +77,13 @@ def test_non_finite_model_tables_are_named(m, arg):
         ("parents", torch.tensor([-1, 0, 1, 1], dtype=torch.int32), "parents must be"),
     ],
 )
-def test_wrong_shapes_are_named(m, arg, value, pattern):
+def test_wrong_shapes_are_named(m, arg, value, pattern, stability):
     with pytest.raises(ShapeError, match=pattern):
         call(m, **{arg: value})
+    stability.checked(26, "skinning: wrong shapes → ShapeError naming the argument")
 
 
-def test_empty_mesh_is_rejected(m):
+def test_empty_mesh_is_rejected(m, stability):
     with pytest.raises(ShapeError, match="v_template"):
         call(
             m,
@@ -90,6 +93,7 @@ def test_empty_mesh_is_rejected(m):
             j_regressor=torch.zeros(5, 0),
             lbs_weights=torch.zeros(0, 5),
         )
+    stability.checked(26, "skinning: empty mesh → ShapeError naming v_template")
 
 
 @pytest.mark.parametrize("parents", [[0, 0, 1, 1, 1], [-1, 0, 3, 1, 1], [-1, 0, 1, 1, 9]])
@@ -98,7 +102,7 @@ def test_parents_must_be_a_topological_tree(m, parents):
         call(m, parents=torch.tensor(parents))
 
 
-def test_dtype_device_and_layout_errors(m):
+def test_dtype_device_and_layout_errors(m, stability):
     with pytest.raises(DTypeError, match="betas must be float32 or float64"):
         call(m, betas=torch.zeros(2, 4, dtype=torch.int64))
     with pytest.raises(DTypeError, match=r"pose must be torch\.float32"):
@@ -107,6 +111,7 @@ def test_dtype_device_and_layout_errors(m):
         call(m, shapedirs=m.shapedirs.numpy())
     with pytest.raises(InvalidArgumentError, match="pose must be contiguous"):
         call(m, pose=torch.zeros(15, 2).T)
+    stability.checked(26, "skinning: wrong dtype, type, non-contiguous → named error", 4)
 
 
 def test_sparse_regressor_is_accepted(m):
@@ -139,13 +144,17 @@ def forward_backward(model):
     return [out.verts, out.joints, out.rotations, betas.grad, pose.grad, transl.grad]
 
 
-def test_case27_bitwise_identical_across_thread_counts():
+def test_case27_bitwise_identical_across_thread_counts(stability):
     model = make_skinned_model(num_verts=5023, num_betas=100, dtype=torch.float32, seed=11)
     baseline = run_with_threads(1, lambda: forward_backward(model))
     for n in (1, 2, 3, 8):
         for _ in range(10 if n == 2 else 2):
             result = run_with_threads(n, lambda: forward_backward(model))
             for a, b in zip(result, baseline, strict=True):
+                differing = (a != b).sum()
+                stability.record(
+                    27, "skinning: elements differing from the 1-thread run", differing, 0
+                )
                 assert torch.equal(a, b), f"{n} threads"
 
 

@@ -70,7 +70,7 @@ def test_uncoalesced_sparse_gradients_are_summed():
 
 
 @pytest.mark.parametrize("bad", [float("inf"), -float("inf"), float("nan")])
-def test_case25_extreme_gradients(bad):
+def test_case25_extreme_gradients(bad, stability):
     param = torch.zeros(H, W, C)
     before = param.clone()
     opt = SparseAdam([param], lr=LR)
@@ -86,15 +86,26 @@ def test_case25_extreme_gradients(bad):
     flat = param.reshape(-1, C)
     assert torch.isfinite(param).all()
     bound = LR * max(1.0, 0.1 / 0.001**0.5) * 3 + 1e-9
+    step_ratio = (flat.abs() / bound).max()  # the bound is per channel (lr per channel)
+    stability.record(25, "max |3 steps| / (3·lr·max(1, (1 − β1)/√(1 − β2)))", step_ratio, 1)
     assert (flat.abs() <= bound).all()
+    moved = (flat - before.reshape(-1, C)).abs()
+    stability.record(25, "zero-gradient texel: max |change|", moved[0].max(), 0)
     assert torch.equal(flat[0], before.reshape(-1, C)[0])  # zero gradient: no move
+    stability.record(
+        25, "texel with a non-finite gradient (rejected): max |change|", moved[3].max(), 0
+    )
     assert torch.equal(flat[3], before.reshape(-1, C)[3])  # rejected
+    stability.record(25, "untouched texels: max |change|", moved[5:].max(), 0)
     assert torch.equal(flat[5:], before.reshape(-1, C)[5:])  # untouched
     assert (flat[2] < 0).all() and (flat[4] > 0).all()
     state = opt.state[param]
     assert state["rejected_rows"] == 3
     assert state["steps"][3] == 0 and state["steps"][2] == 3
     assert torch.isfinite(state["exp_avg_sq"]).all() and torch.isfinite(state["exp_avg"]).all()
+    stability.checked(
+        25, "1e20 and 1e-30 gradients: finite moments, steps in the right direction", 3
+    )
 
 
 def test_bad_arguments_are_named():
@@ -112,7 +123,7 @@ def test_bad_arguments_are_named():
         SparseAdam([p], lr=0.1, betas=(1.0, 0.999)).step()
 
 
-def test_deterministic_across_thread_counts(monkeypatch):
+def test_deterministic_across_thread_counts(monkeypatch, stability):
     results = []
     for n in ("1", "2", "3"):
         monkeypatch.setenv("URHEAD_NUM_THREADS", n)
@@ -127,4 +138,6 @@ def test_deterministic_across_thread_counts(monkeypatch):
             )
             opt.step()
         results.append(p)
+    differing = sum(int((r != results[0]).sum()) for r in results)
+    stability.record(27, "sparse Adam: elements differing across 1, 2, 3 threads", differing, 0)
     assert all(torch.equal(r, results[0]) for r in results)

@@ -114,7 +114,7 @@ def shaded(verts, faces, cam):
 
 
 @pytest.mark.parametrize("offset", [(0.013, -0.021, 0.0), (0.031, 0.007, 0.0), (-0.02, 0.04, 0.1)])
-def test_case6_translation_gradient_matches_finite_differences(offset):
+def test_case6_translation_gradient_matches_finite_differences(offset, stability):
     # The loss weighs the red channel by a ramp in x and y (the image's first moment), so
     # its derivative under translation is well-conditioned: random-sign weights would
     # cancel out along the edges.
@@ -144,7 +144,10 @@ def test_case6_translation_gradient_matches_finite_differences(offset):
         [(loss(base + d) - loss(base - d)) / (2 * h) for d in steps], dtype=torch.float64
     )
     cosine = float(analytic @ fd / (analytic.norm() * fd.norm()))
+    stability.record(6, "1 − cosine(translation gradient, central differences)", 1 - cosine, 0.05)
     assert cosine >= 0.95, (analytic, fd)
+    magnitude_err = abs(float(analytic.norm() / fd.norm()) - 1)
+    stability.record(6, "|‖gradient‖ / ‖central differences‖ − 1|", magnitude_err, 0.10)
     assert abs(float(analytic.norm() / fd.norm()) - 1) <= 0.10, (analytic, fd)
 
 
@@ -158,7 +161,7 @@ def touches_background(tri_id):
     return near
 
 
-def test_case6_shared_interior_edges_of_a_welded_mesh_produce_no_writes():
+def test_case6_shared_interior_edges_of_a_welded_mesh_produce_no_writes(stability):
     offset = torch.tensor([0.013, -0.021, 0.0], dtype=torch.float64)
     cam, verts, faces = square_scene(offset)
     out, raster = shaded(verts, faces, cam)
@@ -169,6 +172,8 @@ def test_case6_shared_interior_edges_of_a_welded_mesh_produce_no_writes():
     )
     changed = (out != plain).any(-1)
     assert changed.any()
+    interior_writes = (changed & ~touches_background(raster.tri_id)).sum()
+    stability.record(6, "welded mesh: pixels written away from the silhouette", interior_writes, 0)
     assert not (changed & ~touches_background(raster.tri_id)).any()
     # Unwelded, the diagonal is an open edge: it gets antialiased (the check can fail).
     cam, verts, faces = square_scene(offset, welded=False)

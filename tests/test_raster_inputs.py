@@ -26,7 +26,7 @@ def mesh():
 
 
 @pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
-def test_case26_non_finite_vertices(mesh, bad):
+def test_case26_non_finite_vertices(mesh, bad, stability):
     verts, faces, _, _, cam = mesh
     verts = verts.clone()
     verts[3, 1] = bad
@@ -36,9 +36,10 @@ def test_case26_non_finite_vertices(mesh, bad):
     color = torch.zeros(cam.height, cam.width, 3)
     with pytest.raises(NonFiniteError, match="verts"):
         ops.antialias(color, raster, verts, faces, cam)
+    stability.checked(26, "mesh: non-finite vertices → NonFiniteError naming verts", 2)
 
 
-def test_case26_non_finite_camera():
+def test_case26_non_finite_camera(stability):
     k = torch.eye(3)
     k[0, 0] = float("nan")
     with pytest.raises(InvalidArgumentError, match="K"):
@@ -47,9 +48,10 @@ def test_case26_non_finite_camera():
     view[0, 3] = float("inf")
     with pytest.raises(InvalidArgumentError, match="viewmat"):
         urhead.Camera(torch.eye(3), view, 8, 8)
+    stability.checked(26, "camera: NaN in K, inf in viewmat → error naming it", 2)
 
 
-def test_case26_non_finite_texels_and_attributes(mesh):
+def test_case26_non_finite_texels_and_attributes(mesh, stability):
     verts, faces, uvs, uv_faces, cam = mesh
     tex = torch.rand(8, 8, 3)
     tex[2, 3, 1] = float("nan")
@@ -67,9 +69,12 @@ def test_case26_non_finite_texels_and_attributes(mesh):
     bad_uv[1, 0] = float("nan")
     with pytest.raises(NonFiniteError, match="uv_coords"):
         ops.rasterize_uv(bad_uv, uv_faces, 8, 8)
+    stability.checked(
+        26, "mesh: non-finite sampled texel, attribute, UV coordinate → named error", 3
+    )
 
 
-def test_case26_wrong_shapes_and_dtypes(mesh):
+def test_case26_wrong_shapes_and_dtypes(mesh, stability):
     verts, faces, _, _, cam = mesh
     with pytest.raises(ShapeError, match="verts"):
         ops.rasterize(torch.zeros(5, 4), faces, cam)
@@ -96,9 +101,10 @@ def test_case26_wrong_shapes_and_dtypes(mesh):
         ops.antialias(
             torch.zeros(cam.height, cam.width, 3), raster, verts, faces, cam, topology=faces[:3]
         )
+    stability.checked(26, "mesh: wrong shapes and dtypes → ShapeError / DTypeError naming them", 11)
 
 
-def test_case26_indices_out_of_range(mesh):
+def test_case26_indices_out_of_range(mesh, stability):
     verts, faces, uvs, uv_faces, cam = mesh
     bad = faces.clone()
     bad[2, 1] = verts.shape[0]
@@ -113,9 +119,10 @@ def test_case26_indices_out_of_range(mesh):
     forged = raster._replace(tri_id=raster.tri_id + faces.shape[0])
     with pytest.raises(IndexRangeError, match="tri_id"):
         ops.interpolate(torch.zeros(verts.shape[0], 1), forged, faces)
+    stability.checked(26, "mesh: faces, uv_faces, tri_id out of range → IndexRangeError", 4)
 
 
-def test_case26_zero_size_empty_and_non_contiguous(mesh):
+def test_case26_zero_size_empty_and_non_contiguous(mesh, stability):
     verts, faces, uvs, uv_faces, cam = mesh
     with pytest.raises(InvalidArgumentError, match="width"):
         urhead.Camera(torch.eye(3), torch.eye(4), 0, 8)
@@ -131,6 +138,7 @@ def test_case26_zero_size_empty_and_non_contiguous(mesh):
         ops.texture(torch.zeros(4, 4, 2)[:, :, :1], torch.zeros(3, 2))
     with pytest.raises(InvalidArgumentError, match="contiguous"):
         ops.texture(torch.zeros(4, 4, 1), torch.zeros(2, 3)[:, :2])
+    stability.checked(26, "mesh: zero-size image, empty mesh, non-contiguous → named error", 7)
 
 
 # --- NUMERICS.md case 27 ------------------------------------------------------------------
@@ -153,7 +161,7 @@ def render_chain():
     return [raster.tri_id, raster.bary, raster.depth, uv, color, out, *grads]
 
 
-def test_case27_bitwise_identical_across_thread_counts_and_runs(monkeypatch):
+def test_case27_bitwise_identical_across_thread_counts_and_runs(monkeypatch, stability):
     monkeypatch.setenv("URHEAD_NUM_THREADS", "1")
     reference = render_chain()
     assert (reference[0] >= 0).sum() > 1000
@@ -161,4 +169,8 @@ def test_case27_bitwise_identical_across_thread_counts_and_runs(monkeypatch):
         monkeypatch.setenv("URHEAD_NUM_THREADS", threads)
         for _ in range(10 if threads == "4" else 3):
             for a, b in zip(render_chain(), reference, strict=True):
+                differing = (a != b).sum() if a.shape == b.shape else a.numel() + b.numel()
+                stability.record(
+                    27, "mesh chain: elements differing from the 1-thread run", differing, 0
+                )
                 assert torch.equal(a, b)

@@ -114,7 +114,7 @@ def near_plane_case(behind_z):
 
 
 @pytest.mark.parametrize("behind_z", [-0.5, 0.0])
-def test_case1_triangle_through_the_near_plane_covers_the_clipped_polygon(behind_z):
+def test_case1_triangle_through_the_near_plane_covers_the_clipped_polygon(behind_z, stability):
     cam, verts, faces = near_plane_case(behind_z)
     out = ops.rasterize(verts, faces, cam)
     expected = ref.rasterize(verts, faces, cam)  # exact ray/plane coverage with z ≥ near
@@ -122,19 +122,26 @@ def test_case1_triangle_through_the_near_plane_covers_the_clipped_polygon(behind
     assert covered.sum() > 200
     # Snapped and exact coverage could differ only within a sub-pixel step of an edge;
     # for this geometry they agree.
+    mismatched = (out.tri_id != expected.tri_id).sum()
+    stability.record(1, "through near: pixels whose coverage differs from the clip", mismatched, 0)
     assert torch.equal(out.tri_id, expected.tri_id)
     both = covered & (expected.tri_id >= 0)
-    assert (out.bary - expected.bary)[both].abs().max() < 1e-13
+    bary_err = (out.bary - expected.bary)[both].abs().max()
+    stability.record(1, "through near: max abs barycentric error vs float64 clip", bary_err, 1e-13)
+    assert bary_err < 1e-13
     assert (out.depth[covered] >= cam.near * (1 - 1e-9)).all()
     assert torch.isfinite(out.bary).all()
     v = verts.clone().requires_grad_(True)
     (g,) = torch.autograd.grad(ops.rasterize(v, faces, cam).bary.sum(), v)
     (g_ref,) = torch.autograd.grad((ref.rasterize(v, faces, cam).bary * both[..., None]).sum(), v)
     assert torch.isfinite(g).all()
+    stability.record(
+        1, "through near: relative L2 error of the vertex gradient", rel_err(g, g_ref), 1e-12
+    )
     assert rel_err(g, g_ref) < 1e-12
 
 
-def test_case1_triangle_fully_behind_the_camera_is_culled():
+def test_case1_triangle_fully_behind_the_camera_is_culled(stability):
     cam, verts, faces = near_plane_case(-0.5)
     verts[:, 2] = torch.tensor([-0.5, -2.0, -1e-9])
     v = verts.clone().requires_grad_(True)
@@ -142,9 +149,10 @@ def test_case1_triangle_fully_behind_the_camera_is_culled():
     assert (out.tri_id == -1).all()
     (g,) = torch.autograd.grad(out.bary.sum(), v, allow_unused=True)
     assert g is None or (g == 0).all()
+    stability.checked(1, "fully behind (z = −1e-9 … −2): culled, zero gradient")
 
 
-def test_case1_huge_triangle_through_the_near_plane_covers_the_screen():
+def test_case1_huge_triangle_through_the_near_plane_covers_the_screen(stability):
     cam = identity_camera(32, 32, focal=40.0, near=0.01)
     verts = torch.tensor(
         [[-1e4, -1e4, 2.0], [1e4, -1e4, 2.0], [0.0, 1e4, -1.0]], dtype=torch.float64
@@ -154,7 +162,9 @@ def test_case1_huge_triangle_through_the_near_plane_covers_the_screen():
     assert torch.equal(out.tri_id, expected.tri_id)
     # Far beyond the guard band on two vertices, behind the camera on the third.
     assert (out.tri_id == 0).all()
-    assert (out.bary - expected.bary).abs().max() < 1e-9
+    bary_err = (out.bary - expected.bary).abs().max()
+    stability.record(1, "huge (1e4) through near: max abs barycentric error", bary_err, 1e-9)
+    assert bary_err < 1e-9
     assert torch.isfinite(out.bary).all()
 
 
@@ -175,7 +185,7 @@ def test_pixels_beyond_the_far_plane_stay_empty():
 # --- NUMERICS.md case 2: degenerate triangles ---------------------------------------------
 
 
-def test_case2_degenerate_triangles_cover_nothing_and_stay_finite():
+def test_case2_degenerate_triangles_cover_nothing_and_stay_finite(stability):
     cam = identity_camera(32, 32, focal=40.0)
     p = lambda x, y, z=2.0: at_pixel(cam, x, y, z)  # noqa: E731
     verts = torch.stack(
@@ -199,6 +209,7 @@ def test_case2_degenerate_triangles_cover_nothing_and_stay_finite():
     )
     v = verts.clone().requires_grad_(True)
     out = ops.rasterize(v, faces, cam)
+    stability.record(2, "pixels covered by a degenerate triangle", (out.tri_id != -1).sum(), 0)
     assert (out.tri_id == -1).all()
     (g,) = torch.autograd.grad((out.bary * 1.0).sum(), v, allow_unused=True)
     assert g is None or torch.isfinite(g).all()
@@ -207,6 +218,9 @@ def test_case2_degenerate_triangles_cover_nothing_and_stay_finite():
     out = ops.rasterize(verts, faces, cam)
     assert set(out.tri_id.unique().tolist()) == {-1, 5}
     assert torch.isfinite(out.bary).all() and torch.isfinite(out.depth[out.tri_id >= 0]).all()
+    stability.checked(
+        2, "5 degenerate triangles: no coverage, finite gradient; healthy one drawn", 5
+    )
 
 
 # --- NUMERICS.md case 3: sliver -----------------------------------------------------------
@@ -224,7 +238,7 @@ def sliver(cam, y_apex, y_b, y_c, dtype=torch.float64):
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_case3_sliver_barycentrics_sum_to_one_and_match_finite_differences(dtype):
+def test_case3_sliver_barycentrics_sum_to_one_and_match_finite_differences(dtype, stability):
     # 1000 px long, 1e-3 px wide, depths (0.01, 1e4, 1e4). Its two long edges straddle a
     # sub-pixel rounding boundary, so the snapped sliver keeps one sub-pixel step of width
     # and its top edge runs through the pixel centres of row 8 (top-left rule: covered).
@@ -237,17 +251,23 @@ def test_case3_sliver_barycentrics_sum_to_one_and_match_finite_differences(dtype
     b = out.bary[covered].double()
     total = 1 - b.sum(-1) + b.sum(-1)  # the implicit first weight closes the sum
     assert torch.isfinite(b).all() and (b >= 0).all() and (b.sum(-1) <= 1 + 1e-6).all()
+    sum_err = max(float((b.sum(-1) - 1).clamp_min(0).max()), float((total - 1).abs().max()))
+    stability.record(3, f"barycentric sum − 1 ({str(dtype)[6:]})", sum_err, 1e-6)
     assert ((total - 1).abs() < 1e-6).all()
     depth = out.depth[covered].double()
     assert (depth >= 0.01 * (1 - 1e-6)).all() and (depth <= 1e4 * (1 + 1e-6)).all()
     if dtype == torch.float64:
         expected = ref.rasterize(verts, faces, cam)
         assert torch.equal(out.tri_id, expected.tri_id)
-        assert (out.bary - expected.bary).abs().max() < 1e-14
+        bary_err = (out.bary - expected.bary).abs().max()
+        stability.record(3, "max abs barycentric error vs float64 reference", bary_err, 1e-14)
+        assert bary_err < 1e-14
         weights = torch.randn(
             16, 1008, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(5)
         )
         an, fd = directional_check(verts, faces, cam, weights, seed=6, h=1e-9)
+        fd_err = abs(an - fd) / max(1.0, abs(fd))
+        stability.record(3, "directional gradient vs float64 central differences", fd_err, 5e-7)
         assert abs(an - fd) <= 5e-7 * max(1.0, abs(fd))
 
 
@@ -262,7 +282,7 @@ def test_case3_sliver_thinner_than_a_subpixel_step_is_dropped():
 
 
 @pytest.mark.parametrize("jitter", [0.0, 0.3])
-def test_case4_watertight_perspective_grid(jitter):
+def test_case4_watertight_perspective_grid(jitter, stability):
     # A 17 × 17 vertex grid on a tilted plane; with jitter 0 every vertex projects onto a
     # pixel centre (the hardest case for the top-left rule).
     cam = identity_camera(40, 40, focal=50.0)
@@ -280,6 +300,9 @@ def test_case4_watertight_perspective_grid(jitter):
     for c in range(8):
         count += ops.rasterize(verts, faces[classes == c], cam).tri_id >= 0
     whole = ops.rasterize(verts, faces, cam).tri_id >= 0
+    interior = count[5:34, 6:35]
+    wrong = int((count > 1).sum() + (interior != 1).sum())
+    stability.record(4, "perspective grid: pixels covered 0 or ≥ 2 times", wrong, 0)
     assert count.max() == 1
     assert torch.equal(count == 1, whole)
     assert count[5:34, 6:35].min() == 1  # every pixel strictly inside the grid
@@ -290,7 +313,7 @@ def test_case4_watertight_perspective_grid(jitter):
 
 @pytest.mark.parametrize("z", [1.0, 10.0, 50.0])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_case5_nearer_plane_wins_and_ties_go_to_the_lower_id(z, dtype):
+def test_case5_nearer_plane_wins_and_ties_go_to_the_lower_id(z, dtype, stability):
     cam = identity_camera(24, 24, focal=30.0, far=100.0)
 
     def quad(depth, tilt):
@@ -312,4 +335,6 @@ def test_case5_nearer_plane_wins_and_ties_go_to_the_lower_id(z, dtype):
             # The near quad wins everywhere; between its two identical copies, the lower ids.
             winners = torch.tensor(sorted([slot[4], slot[8]]))
             ids = out.tri_id[covered]
+            lost = ((ids // 2) * 2 != winners[0]).sum()
+            stability.record(5, "pixels not won by the nearer plane's lowest copy", lost, 0)
             assert ((ids // 2) * 2 == winners[0]).all(), (z, tilt, order)

@@ -126,7 +126,7 @@ SPECIAL = [-1e-7, 0.0, 1.0, 1.0 + 1e-7, 1e20, -1e20, math.inf, -math.inf, math.n
 
 @pytest.mark.parametrize("size", [(1, 1), (3, 5), (4, 4)])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_case7_special_coordinates(size, dtype):
+def test_case7_special_coordinates(size, dtype, stability):
     ht, wt = size
     centres_u = [(c + 0.5) / wt for c in range(wt)]
     values = SPECIAL + centres_u
@@ -135,6 +135,8 @@ def test_case7_special_coordinates(size, dtype):
     # Weights sum to 1: a constant texture samples to that constant wherever uv is finite.
     ones = torch.ones(ht, wt, 2, dtype=dtype)
     out = ops.texture(ones, uv)
+    weight_err = (out[finite] - 1).abs().max()
+    stability.record(7, "weights sum − 1 at special and centre coordinates", weight_err, 0)
     assert torch.equal(out[finite], torch.ones_like(out[finite]))
     assert torch.equal(out[~finite], torch.zeros_like(out[~finite]))
     # Against the reference (clamp-to-edge), and the documented zeros for non-finite uv.
@@ -143,9 +145,13 @@ def test_case7_special_coordinates(size, dtype):
     u = uv.clone().requires_grad_(True)
     out = ops.texture(t, u)
     expected = ref.texture(tex, uv.double())
+    err = (out.double() - expected).abs().max()
+    tol = 1e-6 if dtype == torch.float32 else 1e-15
+    stability.record(7, f"max abs error vs float64 reference ({str(dtype)[6:]})", err, tol)
     assert (out.double() - expected).abs().max() < (1e-6 if dtype == torch.float32 else 1e-15)
     g_tex, g_uv = torch.autograd.grad(out.sum(), (t, u))
     assert torch.isfinite(g_uv).all() and torch.isfinite(g_tex._values()).all()
+    stability.record(7, "max |UV gradient| at non-finite UV", g_uv[~finite].abs().max(), 0)
     assert (g_uv[~finite] == 0).all()
     # Clamped coordinates (beyond the outer texel centres) pass no UV gradient.
     u_out = (uv[:, 0] < 0.5 / wt) | (uv[:, 0] > 1 - 0.5 / wt)
@@ -158,14 +164,20 @@ def test_case7_special_coordinates(size, dtype):
     # (up to the rounding of the centre coordinate itself).
     at_centres = ops.texture(tex.to(dtype), centre_uv).double()
     tol = 1e-6 if dtype == torch.float32 else 1e-15
+    centre_err = (at_centres - tex.reshape(-1, 2)).abs().max()
+    stability.record(7, f"texel centre sample − texel ({str(dtype)[6:]})", centre_err, tol)
     assert (at_centres - tex.reshape(-1, 2)).abs().max() < tol
 
 
-def test_case7_texture_gradient_total_weight_is_one_per_finite_sample():
+def test_case7_texture_gradient_total_weight_is_one_per_finite_sample(stability):
     tex = torch.zeros(3, 5, 1, dtype=torch.float64, requires_grad=True)
     uv = torch.tensor([[u, v] for u in SPECIAL for v in SPECIAL], dtype=torch.float64)
     ops.texture(tex, uv).sum().backward()
     finite = torch.isfinite(uv).all(-1).sum()
+    total_err = abs(float(tex.grad._values().sum()) - float(finite))
+    stability.record(
+        7, "texel-gradient weight summed over samples − sample count", total_err, 1e-12
+    )
     assert abs(float(tex.grad._values().sum()) - float(finite)) < 1e-12
     assert (tex.grad._values() >= 0).all()
 
@@ -173,7 +185,7 @@ def test_case7_texture_gradient_total_weight_is_one_per_finite_sample():
 # --- NUMERICS.md case 8 -------------------------------------------------------------------
 
 
-def test_case8_texels_outside_two_uv_islands_get_exactly_zero_gradient():
+def test_case8_texels_outside_two_uv_islands_get_exactly_zero_gradient(stability):
     # Two quads side by side on screen; their UV faces map to two separate islands.
     cam = identity_camera(48, 24, focal=40.0)
     z = 2.0
@@ -205,8 +217,15 @@ def test_case8_texels_outside_two_uv_islands_get_exactly_zero_gradient():
         near_island |= (
             (u_c > u0 - 1 / 64) & (u_c < u1 + 1 / 64) & (v_c > v0 - 1 / 64) & (v_c < v1 + 1 / 64)
         )
+    stability.record(8, "max |gradient| on texels outside both islands", g[~near_island].max(), 0)
     assert (g[~near_island] == 0).all()
     assert (g[near_island] != 0).float().mean() > 0.5
     listed = torch.zeros(64, 64, dtype=torch.bool)
     listed[tex.grad._indices()[0], tex.grad._indices()[1]] = True
     assert not (listed & ~near_island).any()
+    stability.record(
+        8,
+        "texels outside the islands listed in the sparse gradient",
+        (listed & ~near_island).sum(),
+        0,
+    )

@@ -106,3 +106,64 @@ impl<T: Real> SyntheticLbs<T> {
         .expect("synthetic model is valid")
     }
 }
+
+/// Environment variable naming the file [`record_stability`] appends to.
+pub const STABILITY_LOG_ENV: &str = "URHEAD_STABILITY_LOG";
+
+/// A NUMERICS.md check for the stability report: asserts `worst <= tolerance` (a NaN
+/// `worst` fails) and, when `URHEAD_STABILITY_LOG` names a file, first appends one JSON line
+/// `{"case", "check", "test", "worst", "tolerance"}` to it, so a failed bound is recorded
+/// too. `pytest --stability-rust-log <file>` merges the lines into docs/stability.md.
+pub fn record_stability(case: u32, check: &str, test: &str, worst: f64, tolerance: f64) {
+    if let Some(path) = std::env::var_os(STABILITY_LOG_ENV) {
+        use std::io::Write;
+        // JSON has no NaN: a NaN worst is logged as +inf, which fails every bound too.
+        let logged = if worst.is_nan() { f64::INFINITY } else { worst };
+        let line = format!(
+            "{{\"case\": {case}, \"check\": {}, \"test\": {}, \"worst\": {}, \"tolerance\": {}}}\n",
+            json_string(check),
+            json_string(test),
+            json_number(logged),
+            json_number(tolerance)
+        );
+        // One write per line on an O_APPEND file: lines from parallel tests do not interleave.
+        if let Some(dir) = std::path::Path::new(&path).parent() {
+            std::fs::create_dir_all(dir).ok();
+        }
+        let mut file = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&path)
+            .expect("URHEAD_STABILITY_LOG must name a writable file");
+        file.write_all(line.as_bytes())
+            .expect("writing the stability log");
+    }
+    assert!(
+        worst <= tolerance,
+        "case {case}, {check}: worst {worst:e} > tolerance {tolerance:e}"
+    );
+}
+
+fn json_string(s: &str) -> String {
+    let mut out = String::with_capacity(s.len() + 2);
+    out.push('"');
+    for c in s.chars() {
+        match c {
+            '"' => out.push_str("\\\""),
+            '\\' => out.push_str("\\\\"),
+            c if (c as u32) < 0x20 => out.push_str(&format!("\\u{:04x}", c as u32)),
+            c => out.push(c),
+        }
+    }
+    out.push('"');
+    out
+}
+
+/// Python's json reads `Infinity`; finite values print exactly (shortest round-trip).
+fn json_number(x: f64) -> String {
+    if x.is_infinite() {
+        if x > 0.0 { "Infinity" } else { "-Infinity" }.to_string()
+    } else {
+        format!("{x:e}")
+    }
+}

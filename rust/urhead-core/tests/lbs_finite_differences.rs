@@ -2,7 +2,7 @@
 //! float32 forward against the float64 forward.
 
 use urhead_core::lbs::{lbs_backward, lbs_forward, LbsForward, LbsGradOutputs, LbsInputs, LbsNeeds};
-use urhead_core::testing::{Rng, SyntheticLbs};
+use urhead_core::testing::{record_stability, Rng, SyntheticLbs};
 
 const B: usize = 2;
 const V: usize = 300;
@@ -90,6 +90,16 @@ fn check_all_gradients(pose_scale: f64) {
     let g = lbs_backward(&case.tables.model(), &inputs, &fwd.saved(), &grads, &needs).unwrap();
     let mut rng = Rng::new(99);
     let close = |(an, fd): (f64, f64), what: &str| {
+        if pose_scale >= 3.0 {
+            // NUMERICS.md case 24 asks for FD at large poses: those go in the report.
+            record_stability(
+                24,
+                &format!("Rust, pose scale {pose_scale}: {what} gradient vs central differences, |an − fd| / (1 + |fd|)"),
+                "lbs_finite_differences::gradients_match_central_differences_at_large_poses",
+                (an - fd).abs() / (1.0 + fd.abs()),
+                1e-6,
+            );
+        }
         assert!(
             (an - fd).abs() <= 1e-6 * (1.0 + fd.abs()),
             "{what}: analytic {an} vs fd {fd}"

@@ -6,7 +6,7 @@ use urhead_core::raster::{
     antialias_backward, antialias_forward, edge_topology, interpolate_backward, interpolate_forward,
     rasterize_backward, rasterize_forward, rasterize_uv, texture_backward, texture_forward, AntialiasInputs,
 };
-use urhead_core::testing::Rng;
+use urhead_core::testing::{record_stability, Rng};
 use urhead_core::Camera;
 
 const W: u32 = 48;
@@ -338,6 +338,16 @@ fn whole_chain_is_bitwise_identical_for_any_thread_count() {
     };
     let reference = run(1);
     for threads in [2, 3, 4] {
-        assert!(run(threads) == reference, "{threads} threads differ from 1");
+        let bits = run(threads);
+        let differing = bits.iter().zip(&reference).filter(|(a, b)| a != b).count()
+            + bits.len().abs_diff(reference.len());
+        record_stability(
+            27,
+            "Rust mesh chain: elements whose bits differ from the 1-thread run",
+            "raster_adjoints::whole_chain_is_bitwise_identical_for_any_thread_count",
+            differing as f64,
+            0.0,
+        );
+        assert!(bits == reference, "{threads} threads differ from 1");
     }
 }

@@ -477,7 +477,7 @@ fn project_one_backward<T: Real>(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::testing::Rng;
+    use crate::testing::{record_stability, Rng};
 
     fn camera() -> Camera {
         let view = [
@@ -504,7 +504,8 @@ mod tests {
         w[0] * p.mean2d[0] + w[1] * p.mean2d[1] + w[2] * p.conic[0] + w[3] * p.conic[1] + w[4] * p.conic[2]
     }
 
-    fn check_fd(mean: V3<f64>, expect_clamped: [bool; 2]) {
+    /// Returns the worst |fd − analytic| / (1 + |fd|) over mean, scale and quat.
+    fn check_fd(mean: V3<f64>, expect_clamped: [bool; 2]) -> f64 {
         let cam = CameraT::<f64>::new(&camera());
         let mut rng = Rng::new(17);
         let quat = [0.8, -0.3, 0.4, 0.2];
@@ -515,11 +516,13 @@ mod tests {
         let (v_pc, v_q, v_s) = project_one_backward(&cam, &p, [w[0], w[1]], [w[2], w[3], w[4]]);
         let v_mean: V3<f64> = [0, 1, 2].map(|j| (0..3).map(|i| cam.rot[i][j] * v_pc[i]).sum());
         let h = 1e-6;
+        let mut worst = 0.0f64;
         for a in 0..3 {
             let (mut mp, mut mm) = (mean, mean);
             mp[a] += h;
             mm[a] -= h;
             let fd = (loss(&cam, mp, quat, scale, &w) - loss(&cam, mm, quat, scale, &w)) / (2.0 * h);
+            worst = worst.max((fd - v_mean[a]).abs() / (1.0 + fd.abs()));
             assert!(
                 (fd - v_mean[a]).abs() <= 1e-5 * (1.0 + fd.abs()),
                 "mean[{a}]: {fd} vs {}",
@@ -529,6 +532,7 @@ mod tests {
             sp[a] += h;
             sm[a] -= h;
             let fd = (loss(&cam, mean, quat, sp, &w) - loss(&cam, mean, quat, sm, &w)) / (2.0 * h);
+            worst = worst.max((fd - v_s[a]).abs() / (1.0 + fd.abs()));
             assert!(
                 (fd - v_s[a]).abs() <= 1e-5 * (1.0 + fd.abs()),
                 "scale[{a}]: {fd} vs {}",
@@ -540,12 +544,14 @@ mod tests {
             qp[a] += h;
             qm[a] -= h;
             let fd = (loss(&cam, mean, qp, scale, &w) - loss(&cam, mean, qm, scale, &w)) / (2.0 * h);
+            worst = worst.max((fd - v_q[a]).abs() / (1.0 + fd.abs()));
             assert!(
                 (fd - v_q[a]).abs() <= 1e-5 * (1.0 + fd.abs()),
                 "quat[{a}]: {fd} vs {}",
                 v_q[a]
             );
         }
+        worst
     }
 
     #[test]
@@ -557,8 +563,19 @@ mod tests {
     /// the clamped branch too.
     #[test]
     fn case10_projection_gradient_matches_fd_clamped_branches() {
-        check_fd([-0.3, 0.01, 0.6], [true, false]);
-        check_fd([0.03, 0.22, 0.6], [false, true]);
-        check_fd([0.2, -0.14, 0.6], [true, true]);
+        let worst = [
+            check_fd([-0.3, 0.01, 0.6], [true, false]),
+            check_fd([0.03, 0.22, 0.6], [false, true]),
+            check_fd([0.2, -0.14, 0.6], [true, true]),
+        ]
+        .into_iter()
+        .fold(0.0, f64::max);
+        record_stability(
+            10,
+            "Rust projection, clamped x, y and both: gradient vs central differences, |an − fd| / (1 + |fd|)",
+            "splat::project::tests::case10_projection_gradient_matches_fd_clamped_branches",
+            worst,
+            1e-5,
+        );
     }
 }
