@@ -3,6 +3,7 @@
 //! SSIM as 3DGS and `urhead.losses.ssim_map` define it: an 11 × 11 Gaussian window
 //! (σ = 1.5) applied separably with zero padding, C1 = 0.01², C2 = 0.03², the per-pixel
 //! value averaged over channels. The loss is the masked mean `Σ_p m_p·ssim_p / max(Σ_p m_p, 1)`.
+//! The masked L1 `Σ m·|x − y| / max(C·Σ m, 1)` of the same loss stage lives here too.
 //!
 //! Layout: images stay interleaved. A horizontal blur of an interleaved row is a 1-D blur
 //! whose taps are `C` elements apart, and a vertical blur sums 11 whole rows, so both
@@ -18,9 +19,11 @@
 mod backward;
 mod blur;
 mod forward;
+mod l1;
 
 pub use backward::masked_ssim_with_grad;
 pub use forward::masked_ssim;
+pub use l1::{masked_l1, masked_l1_with_grad};
 
 use rayon::prelude::*;
 
@@ -58,7 +61,7 @@ pub struct SsimInputs<'a, T> {
 }
 
 impl<T: Real> SsimInputs<'_, T> {
-    /// Shapes, finiteness and mask range; returns the mask normaliser `max(Σ m, 1)`.
+    /// Shapes, finiteness and mask range; returns the mask weight `Σ m` (`H·W` without one).
     fn validate(&self) -> Result<f64> {
         let (h, w, c) = (self.height, self.width, self.channels);
         if h == 0 || w == 0 || c == 0 {
@@ -88,7 +91,7 @@ impl<T: Real> SsimInputs<'_, T> {
             .par_chunks(CHECK_CHUNK)
             .map(|chunk| chunk.iter().map(|m| m.to_f64().unwrap_or(0.0)).sum())
             .collect();
-        Ok(partials.iter().sum::<f64>().max(1.0))
+        Ok(partials.iter().sum())
     }
 
     /// Weight of pixel `p` in the masked mean, before normalisation.
