@@ -8,12 +8,15 @@ constants.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch.autograd.function import once_differentiable
 
 from urhead._threads import num_threads
 from urhead.errors import InvalidArgumentError
 from urhead.ops._bridge import check_tensor, float_dtype, kernel, to_numpy
+
+_NUMPY_DTYPES = {torch.float32: np.float32, torch.float64: np.float64}
 
 
 class _MaskedImageLoss(torch.autograd.Function):
@@ -39,7 +42,9 @@ class _MaskedImageLoss(torch.autograd.Function):
         if grad_value is None or not ctx.needs_input_grad[1]:
             return None, None, None, None
         (grad,) = ctx.saved_tensors
-        return None, grad * grad_value, None, None
+        # numpy, single-threaded: a torch elementwise op pays thread start-up on a busy machine
+        scaled = grad.numpy() * grad.numpy().dtype.type(grad_value.item())
+        return None, torch.from_numpy(scaled), None, None
 
 
 def _apply(name: str, image, target, mask) -> torch.Tensor:
@@ -52,8 +57,9 @@ def _apply(name: str, image, target, mask) -> torch.Tensor:
             )
     if mask is not None:
         check_tensor("mask", mask)
-        if mask.dtype == torch.bool or mask.dtype in (torch.float32, torch.float64):
-            mask = mask.to(dtype)  # (H, W) is small next to the (H, W, C) images
+        if mask.dtype != dtype and mask.dtype in (torch.bool, torch.float32, torch.float64):
+            # (H, W) is small next to the images; numpy converts without thread start-up
+            mask = torch.from_numpy(mask.detach().numpy().astype(_NUMPY_DTYPES[dtype]))
     return _MaskedImageLoss.apply(name, image, target, mask)
 
 

@@ -1,8 +1,8 @@
 //! Masked SSIM of a 512 × 512 × 3 f32 image (the training resolution): value only, and
-//! value with gradient (the training loop's forward + backward).
+//! value with gradient (the training loop's forward + backward); the same for masked L1.
 
 use criterion::{criterion_group, criterion_main, Criterion};
-use urhead_core::ssim::{masked_ssim, masked_ssim_with_grad, SsimInputs};
+use urhead_core::ssim::{masked_l1, masked_l1_with_grad, masked_ssim, masked_ssim_with_grad, SsimInputs};
 use urhead_core::testing::Rng;
 
 const SIDE: usize = 512;
@@ -41,6 +41,12 @@ fn bench_ssim(c: &mut Criterion) {
     group.bench_function("forward", |b| b.iter(|| masked_ssim(&inputs).unwrap()));
     group.bench_function("forward_backward", |b| {
         b.iter(|| masked_ssim_with_grad(&inputs).unwrap())
+    });
+    group.finish();
+    let mut group = c.benchmark_group("l1_512x512x3_f32");
+    group.bench_function("forward", |b| b.iter(|| masked_l1(&inputs).unwrap()));
+    group.bench_function("forward_backward", |b| {
+        b.iter(|| masked_l1_with_grad(&inputs).unwrap())
     });
     group.finish();
 }
