@@ -2,9 +2,9 @@
 every term is averaged inside the head mask, so background pixels neither train nor score.
 
 Images are (H, W, C) float tensors in [0, 1]; masks are (H, W) in [0, 1] or bool.
-These are plain torch (torch's CPU conv is slow for 11-tap windows; a fused Rust SSIM
-forward/backward is the planned replacement for the training loop's hot path, and these
-stay as its reference).
+:func:`ssim` and :func:`l1` run the fused Rust kernels of :mod:`urhead.ops.ssim` for CPU
+float32/float64 images with a constant target and mask (the training loop's case) and fall
+back to plain torch otherwise; :func:`ssim_map` stays plain torch, the kernels' reference.
 """
 
 from __future__ import annotations
@@ -13,6 +13,8 @@ from functools import lru_cache
 
 import torch
 import torch.nn.functional as F
+
+from urhead.ops.ssim import l1_loss, ssim_loss
 
 SSIM_WINDOW = 11
 SSIM_SIGMA = 1.5
@@ -59,13 +61,33 @@ def _masked_mean(values: torch.Tensor, mask: torch.Tensor | None) -> torch.Tenso
     return (values * weight).sum() / weight.sum().clamp_min(1)
 
 
+def _kernel_applies(image, target, mask) -> bool:
+    """Whether the Rust kernels take these inputs: CPU (H, W, C) float32/float64 of one dtype,
+    differentiated in ``image`` only."""
+    tensors = [image, target] + ([] if mask is None else [mask])
+    return (
+        all(isinstance(t, torch.Tensor) and t.device.type == "cpu" for t in tensors)
+        and image.dtype in (torch.float32, torch.float64)
+        and target.dtype == image.dtype
+        and image.dim() == 3
+        and not target.requires_grad
+        and not (mask is not None and mask.requires_grad)
+    )
+
+
 def ssim(image, target, mask=None) -> torch.Tensor:
     """Mean SSIM inside ``mask``."""
+    if _kernel_applies(image, target, mask):
+        mask = None if mask is None else mask.contiguous()
+        return ssim_loss(image.contiguous(), target.contiguous(), mask)
     return _masked_mean(ssim_map(image, target), mask)
 
 
 def l1(image, target, mask=None) -> torch.Tensor:
     """Mean absolute error inside ``mask``."""
+    if _kernel_applies(image, target, mask):
+        mask = None if mask is None else mask.contiguous()
+        return l1_loss(image.contiguous(), target.contiguous(), mask)
     return _masked_mean((image - target).abs(), mask)
 
 

@@ -7,6 +7,7 @@ from urhead.ops.interpolate import interpolate
 from urhead.ops.lbs import LbsOutput, lbs
 from urhead.ops.rasterize import RasterOutput, UvRasterOutput, rasterize, rasterize_uv
 from urhead.ops.splat import SplatOutput, normal_to_quat, rasterize_gaussians
+from urhead.ops.ssim import l1_loss, ssim_loss
 from urhead.ops.texture import texture
 
 __all__ = [
@@ -17,10 +18,12 @@ __all__ = [
     "antialias",
     "antialias_topology",
     "interpolate",
+    "l1_loss",
     "lbs",
     "normal_to_quat",
     "rasterize",
     "rasterize_gaussians",
     "rasterize_uv",
+    "ssim_loss",
     "texture",
 ]

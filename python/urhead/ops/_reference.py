@@ -7,6 +7,7 @@ import math
 
 import torch
 
+from urhead.losses import ssim_map
 from urhead.ops.lbs import LbsOutput
 from urhead.sh import sh_basis
 
@@ -567,3 +568,25 @@ def rasterize_gaussians(
         depth_eps,
     )
     return image, t, means2d
+
+
+# --- Masked image losses (urhead.ops.ssim_loss / l1_loss) -----------------------------------
+
+
+def _masked_pixel_mean(values: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+    """Σ m·v / max(Σ m, 1) over (H, W) or (H, W, C) values, the mask repeated over C."""
+    weight = torch.ones(values.shape[:2], dtype=values.dtype) if mask is None else mask
+    weight = weight.to(values.dtype)
+    if values.dim() == 3:
+        weight = weight[..., None].expand_as(values)
+    return (values * weight).sum() / weight.sum().clamp_min(1)
+
+
+def ssim_loss(image, target, mask=None):
+    """Reference of :func:`urhead.ops.ssim_loss`: plain-torch SSIM map, masked mean."""
+    return _masked_pixel_mean(ssim_map(image, target), mask)
+
+
+def l1_loss(image, target, mask=None):
+    """Reference of :func:`urhead.ops.l1_loss`."""
+    return _masked_pixel_mean((image - target).abs(), mask)

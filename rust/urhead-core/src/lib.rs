@@ -16,6 +16,7 @@ pub mod raster;
 pub mod raytrace;
 pub mod real;
 pub mod splat;
+pub mod ssim;
 pub mod testing;
 
 pub use camera::Camera;

@@ -11,6 +11,7 @@ mod pool;
 mod raster;
 mod raytrace;
 mod splat;
+mod ssim;
 
 use pyo3::prelude::*;
 
@@ -43,5 +44,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(splat::splat_rasterize_backward_f64, m)?)?;
     m.add_function(wrap_pyfunction!(raytrace::raytrace_render, m)?)?;
     m.add_class::<raytrace::PyTriangleBvh>()?;
+    ssim::register(m)?;
     Ok(())
 }

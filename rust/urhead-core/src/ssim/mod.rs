@@ -1,0 +1,177 @@
+//! Masked mean SSIM of `(H, W, C)` images and its gradient, fused for the training loop.
+//!
+//! SSIM as 3DGS and `urhead.losses.ssim_map` define it: an 11 × 11 Gaussian window
+//! (σ = 1.5) applied separably with zero padding, C1 = 0.01², C2 = 0.03², the per-pixel
+//! value averaged over channels. The loss is the masked mean `Σ_p m_p·ssim_p / max(Σ_p m_p, 1)`.
+//! The masked L1 `Σ m·|x − y| / max(C·Σ m, 1)` of the same loss stage lives here too.
+//!
+//! Layout: images stay interleaved. A horizontal blur of an interleaved row is a 1-D blur
+//! whose taps are `C` elements apart, and a vertical blur sums 11 whole rows, so both
+//! passes are contiguous multiply-adds over `W·C` elements (AVX2-friendly) and no channel
+//! is ever de-interleaved.
+//!
+//! Work is cut into fixed bands of rows; each band streams its rows through ring buffers
+//! of 11 horizontally blurred rows (L2-resident), recomputing the few halo rows it shares
+//! with its neighbours instead of materialising full-image intermediates. Pixels do not
+//! depend on the banding; per-band sums are merged in band order, so results are bitwise
+//! identical for any thread count.
+
+mod backward;
+mod blur;
+mod forward;
+mod l1;
+
+pub use backward::masked_ssim_with_grad;
+pub use forward::masked_ssim;
+pub use l1::{masked_l1, masked_l1_with_grad};
+
+use rayon::prelude::*;
+
+use crate::error::{check_len, Error, Result};
+use crate::Real;
+
+/// Side of the Gaussian window.
+pub const WINDOW: usize = 11;
+/// Standard deviation of the Gaussian window, in pixels.
+pub const SIGMA: f64 = 1.5;
+/// Stabiliser of the luminance term, (0.01·L)² for L = 1.
+pub const C1: f64 = 0.01 * 0.01;
+/// Stabiliser of the contrast-structure term, (0.03·L)².
+pub const C2: f64 = 0.03 * 0.03;
+
+/// Image rows per parallel work item. Fixed (never derived from the thread count) so the
+/// order of the per-band partial sums, and hence the result bits, never change.
+const BAND_ROWS: usize = 128;
+
+/// Elements per parallel chunk of the input checks.
+const CHECK_CHUNK: usize = 1 << 16;
+
+/// Borrowed inputs of one SSIM evaluation.
+#[derive(Debug, Clone, Copy)]
+pub struct SsimInputs<'a, T> {
+    /// `(H, W, C)` image the gradient is taken with respect to.
+    pub image: &'a [T],
+    /// `(H, W, C)` reference image (a constant).
+    pub target: &'a [T],
+    /// `(H, W)` pixel weights in [0, 1], or `None` for all ones.
+    pub mask: Option<&'a [T]>,
+    pub height: usize,
+    pub width: usize,
+    pub channels: usize,
+}
+
+impl<T: Real> SsimInputs<'_, T> {
+    /// Shapes, finiteness and mask range; returns the mask weight `Σ m` (`H·W` without one).
+    fn validate(&self) -> Result<f64> {
+        let (h, w, c) = (self.height, self.width, self.channels);
+        if h == 0 || w == 0 || c == 0 {
+            return Err(Error::Shape {
+                arg: "image",
+                expected: "(H, W, C) with H, W, C >= 1".into(),
+                got: format!("({h}, {w}, {c})"),
+            });
+        }
+        let layout = format!("(H, W, C) = ({h}, {w}, {c})");
+        check_len("image", self.image, h * w * c, &layout)?;
+        check_len("target", self.target, h * w * c, &layout)?;
+        check_all_finite("image", self.image)?;
+        check_all_finite("target", self.target)?;
+        let Some(mask) = self.mask else {
+            return Ok((h * w) as f64);
+        };
+        check_len("mask", mask, h * w, &format!("(H, W) = ({h}, {w})"))?;
+        check_all_finite("mask", mask)?;
+        if let Some(i) = mask.iter().position(|&m| !(m >= T::zero() && m <= T::one())) {
+            return Err(Error::Invalid {
+                arg: "mask",
+                reason: format!("weights must be in [0, 1], got {:?} at flat index {i}", mask[i]),
+            });
+        }
+        let partials: Vec<f64> = mask
+            .par_chunks(CHECK_CHUNK)
+            .map(|chunk| chunk.iter().map(|m| m.to_f64().unwrap_or(0.0)).sum())
+            .collect();
+        Ok(partials.iter().sum())
+    }
+
+    /// Weight of pixel `p` in the masked mean, before normalisation.
+    #[inline(always)]
+    fn mask_weight(&self, pixel: usize) -> T {
+        self.mask.map_or(T::one(), |m| m[pixel])
+    }
+}
+
+/// `check_finite`, with the common all-finite case vectorised and run in parallel.
+fn check_all_finite<T: Real>(arg: &'static str, data: &[T]) -> Result<()> {
+    let all_finite = data
+        .par_chunks(CHECK_CHUNK)
+        .all(|chunk| chunk.iter().fold(true, |ok, x| ok & x.is_finite()));
+    if all_finite {
+        Ok(())
+    } else {
+        crate::error::check_finite(arg, data)
+    }
+}
+
+/// The normalised 11-tap Gaussian, computed in f64 then rounded once.
+fn gaussian_window<T: Real>() -> [T; WINDOW] {
+    let half = (WINDOW / 2) as f64;
+    let raw: Vec<f64> = (0..WINDOW)
+        .map(|i| (-((i as f64 - half).powi(2)) / (2.0 * SIGMA * SIGMA)).exp())
+        .collect();
+    let total: f64 = raw.iter().sum();
+    std::array::from_fn(|i| T::c(raw[i] / total))
+}
+
+/// The blurred moments of one pixel and channel, and the SSIM terms built from them.
+#[derive(Debug, Clone, Copy)]
+struct PixelTerms<T> {
+    mu_x: T,
+    mu_y: T,
+    /// 2·μx·μy + C1
+    a1: T,
+    /// 2·σxy + C2
+    a2: T,
+    /// μx² + μy² + C1
+    b1: T,
+    /// σx² + σy² + C2
+    b2: T,
+}
+
+impl<T: Real> PixelTerms<T> {
+    /// From the blurred x, y, x², y², x·y.
+    #[inline(always)]
+    fn new(mu_x: T, mu_y: T, e_xx: T, e_yy: T, e_xy: T) -> Self {
+        let (c1, c2, two) = (T::c(C1), T::c(C2), T::c(2.0));
+        let (mx2, my2, mxy) = (mu_x * mu_x, mu_y * mu_y, mu_x * mu_y);
+        Self {
+            mu_x,
+            mu_y,
+            a1: two * mxy + c1,
+            a2: two * (e_xy - mxy) + c2,
+            b1: mx2 + my2 + c1,
+            b2: (e_xx - mx2) + (e_yy - my2) + c2,
+        }
+    }
+
+    /// `(1/B1, 1/B2)` from one division, shared by the value and the adjoint so both give
+    /// the same SSIM bits.
+    #[inline(always)]
+    fn inverses(&self) -> (T, T) {
+        let inv = T::one() / (self.b1 * self.b2);
+        (self.b2 * inv, self.b1 * inv)
+    }
+
+    #[inline(always)]
+    fn ssim(&self) -> T {
+        let (inv_b1, inv_b2) = self.inverses();
+        self.a1 * self.a2 * (inv_b1 * inv_b2)
+    }
+}
+
+/// The band boundaries `[start, end)` of an image of `height` rows.
+fn bands(height: usize) -> impl IndexedParallelIterator<Item = (usize, usize)> {
+    (0..height.div_ceil(BAND_ROWS))
+        .into_par_iter()
+        .map(move |b| (b * BAND_ROWS, ((b + 1) * BAND_ROWS).min(height)))
+}

@@ -1,0 +1,280 @@
+//! SSIM and L1 kernels against a direct (non-separable, f64) evaluation of the definition, its
+//! gradient against central finite differences, and determinism across thread counts.
+
+use urhead_core::error::Error;
+use urhead_core::ssim::{
+    masked_l1, masked_l1_with_grad, masked_ssim, masked_ssim_with_grad, SsimInputs, C1, C2, SIGMA, WINDOW,
+};
+use urhead_core::testing::Rng;
+
+/// Masked mean SSIM from the definition: a full 2-D window per pixel and channel.
+fn direct_ssim(x: &[f64], y: &[f64], mask: Option<&[f64]>, h: usize, w: usize, c: usize) -> f64 {
+    let half = (WINDOW / 2) as isize;
+    let g: Vec<f64> = (0..WINDOW)
+        .map(|i| (-((i as f64 - half as f64).powi(2)) / (2.0 * SIGMA * SIGMA)).exp())
+        .collect();
+    let g_sum: f64 = g.iter().sum();
+    let (mut total, mut norm) = (0.0, 0.0);
+    for i in 0..h {
+        for j in 0..w {
+            let m = mask.map_or(1.0, |m| m[i * w + j]);
+            norm += m;
+            let mut pixel = 0.0;
+            for ch in 0..c {
+                let mut e = [0.0; 5];
+                for di in -half..=half {
+                    for dj in -half..=half {
+                        let (r, s) = (i as isize + di, j as isize + dj);
+                        if r < 0 || s < 0 || r >= h as isize || s >= w as isize {
+                            continue;
+                        }
+                        let wt = g[(di + half) as usize] * g[(dj + half) as usize] / (g_sum * g_sum);
+                        let k = (r as usize * w + s as usize) * c + ch;
+                        let (a, b) = (x[k], y[k]);
+                        for (acc, v) in e.iter_mut().zip([a, b, a * a, b * b, a * b]) {
+                            *acc += wt * v;
+                        }
+                    }
+                }
+                let [mx, my, exx, eyy, exy] = e;
+                let num = (2.0 * mx * my + C1) * (2.0 * (exy - mx * my) + C2);
+                let den = (mx * mx + my * my + C1) * ((exx - mx * mx) + (eyy - my * my) + C2);
+                pixel += num / den;
+            }
+            total += m * pixel / c as f64;
+        }
+    }
+    total / norm.max(1.0)
+}
+
+struct Case {
+    x: Vec<f64>,
+    y: Vec<f64>,
+    mask: Option<Vec<f64>>,
+    h: usize,
+    w: usize,
+    c: usize,
+}
+
+impl Case {
+    /// A target and an image near it (as in training: a render close to the photo).
+    fn new(h: usize, w: usize, c: usize, seed: u64) -> Self {
+        let mut rng = Rng::new(seed);
+        let y: Vec<f64> = rng.vec(h * w * c, 0.0, 1.0);
+        let x = y
+            .iter()
+            .map(|v| (v + rng.uniform(-0.2, 0.2)).clamp(0.0, 1.0))
+            .collect();
+        Self {
+            x,
+            y,
+            mask: None,
+            h,
+            w,
+            c,
+        }
+    }
+
+    fn with_soft_mask(mut self, seed: u64) -> Self {
+        let mut rng = Rng::new(seed);
+        self.mask = Some(
+            (0..self.h * self.w)
+                .map(|_| {
+                    if rng.uniform(0.0, 1.0) < 0.3 {
+                        0.0
+                    } else {
+                        rng.uniform(0.0, 1.0)
+                    }
+                })
+                .collect(),
+        );
+        self
+    }
+
+    fn inputs<'a>(&'a self, x: &'a [f64]) -> SsimInputs<'a, f64> {
+        SsimInputs {
+            image: x,
+            target: &self.y,
+            mask: self.mask.as_deref(),
+            height: self.h,
+            width: self.w,
+            channels: self.c,
+        }
+    }
+
+    fn direct(&self, x: &[f64]) -> f64 {
+        direct_ssim(x, &self.y, self.mask.as_deref(), self.h, self.w, self.c)
+    }
+}
+
+fn cases() -> Vec<Case> {
+    vec![
+        Case::new(1, 1, 1, 1),
+        Case::new(5, 7, 3, 2),
+        Case::new(13, 11, 2, 3).with_soft_mask(4),
+        Case::new(70, 29, 3, 5).with_soft_mask(6),
+        Case::new(150, 17, 1, 7),
+    ]
+}
+
+#[test]
+fn value_matches_direct_definition() {
+    for case in cases() {
+        let ours = masked_ssim(&case.inputs(&case.x)).unwrap();
+        let (fused, _) = masked_ssim_with_grad(&case.inputs(&case.x)).unwrap();
+        let direct = case.direct(&case.x);
+        assert!(
+            (ours - direct).abs() < 1e-14,
+            "{}x{}: {ours} vs {direct}",
+            case.h,
+            case.w
+        );
+        assert_eq!(ours.to_bits(), fused.to_bits());
+    }
+}
+
+#[test]
+fn gradient_matches_central_differences() {
+    for case in cases() {
+        let (_, grad) = masked_ssim_with_grad(&case.inputs(&case.x)).unwrap();
+        let mut rng = Rng::new(11);
+        for _ in 0..3 {
+            let dir: Vec<f64> = rng.vec(case.x.len(), -1.0, 1.0);
+            let eps = 1e-6;
+            let shifted = |s: f64| -> Vec<f64> { case.x.iter().zip(&dir).map(|(x, d)| x + s * d).collect() };
+            let (plus, minus) = (shifted(eps), shifted(-eps));
+            let fd = (masked_ssim(&case.inputs(&plus)).unwrap() - masked_ssim(&case.inputs(&minus)).unwrap())
+                / (2.0 * eps);
+            let analytic: f64 = grad.iter().zip(&dir).map(|(g, d)| g * d).sum();
+            let scale = analytic.abs().max(1e-3);
+            assert!(
+                (fd - analytic).abs() < 5e-7 * scale,
+                "{}x{}: fd {fd} vs {analytic}",
+                case.h,
+                case.w
+            );
+        }
+    }
+}
+
+#[test]
+fn gradient_elements_match_central_differences_near_borders() {
+    let case = Case::new(9, 14, 2, 21).with_soft_mask(22);
+    let (_, grad) = masked_ssim_with_grad(&case.inputs(&case.x)).unwrap();
+    let eps = 1e-6;
+    let mut worst: f64 = 0.0;
+    for k in 0..case.x.len() {
+        let mut x = case.x.clone();
+        x[k] += eps;
+        let plus = masked_ssim(&case.inputs(&x)).unwrap();
+        x[k] -= 2.0 * eps;
+        let minus = masked_ssim(&case.inputs(&x)).unwrap();
+        worst = worst.max(((plus - minus) / (2.0 * eps) - grad[k]).abs());
+    }
+    assert!(worst < 1e-9, "worst element error {worst}");
+}
+
+#[test]
+fn identical_images_score_one_with_zero_gradient() {
+    let case = Case::new(20, 9, 3, 31);
+    let (value, grad) = masked_ssim_with_grad(&case.inputs(&case.y)).unwrap();
+    assert!((value - 1.0).abs() < 1e-14);
+    assert!(grad.iter().all(|g| g.abs() < 1e-13));
+}
+
+#[test]
+fn all_zero_mask_gives_zero_value_and_gradient() {
+    let mut case = Case::new(12, 12, 3, 41);
+    case.mask = Some(vec![0.0; 144]);
+    let (value, grad) = masked_ssim_with_grad(&case.inputs(&case.x)).unwrap();
+    assert_eq!(value, 0.0);
+    assert!(grad.iter().all(|&g| g == 0.0));
+}
+
+#[test]
+fn thread_count_does_not_change_bits() {
+    let mut rng = Rng::new(51);
+    let (h, w, c) = (203, 37, 3);
+    let y: Vec<f32> = rng.vec(h * w * c, 0.0, 1.0);
+    let x: Vec<f32> = rng.vec(h * w * c, 0.0, 1.0);
+    let mask: Vec<f32> = rng.vec(h * w, 0.0, 1.0);
+    let inputs = SsimInputs {
+        image: &x,
+        target: &y,
+        mask: Some(&mask),
+        height: h,
+        width: w,
+        channels: c,
+    };
+    let run = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        pool.install(|| masked_ssim_with_grad(&inputs).unwrap())
+    };
+    let (v1, g1) = run(1);
+    for threads in [2, 4] {
+        let (v, g) = run(threads);
+        assert_eq!(v.to_bits(), v1.to_bits());
+        assert!(g.iter().zip(&g1).all(|(a, b)| a.to_bits() == b.to_bits()));
+    }
+}
+
+#[test]
+fn bad_inputs_are_rejected_by_name() {
+    let case = Case::new(4, 4, 3, 61);
+    let mut x = case.x.clone();
+    x[5] = f64::NAN;
+    assert!(matches!(
+        masked_ssim(&case.inputs(&x)),
+        Err(Error::NonFinite {
+            arg: "image",
+            index: 5,
+            ..
+        })
+    ));
+    let short = &case.x[..10];
+    assert!(matches!(
+        masked_ssim(&case.inputs(short)),
+        Err(Error::Shape { arg: "image", .. })
+    ));
+    let mut bad_mask = case;
+    bad_mask.mask = Some(vec![1.5; 16]);
+    let x = bad_mask.x.clone();
+    assert!(matches!(
+        masked_ssim_with_grad(&bad_mask.inputs(&x)),
+        Err(Error::Invalid { arg: "mask", .. })
+    ));
+}
+
+#[test]
+fn l1_matches_definition_and_its_subgradient() {
+    for case in cases() {
+        let mut x = case.x.clone();
+        x[0] = case.y[0]; // a zero difference: subgradient 0
+        let (value, grad) = masked_l1_with_grad(&case.inputs(&x)).unwrap();
+        assert_eq!(value.to_bits(), masked_l1(&case.inputs(&x)).unwrap().to_bits());
+        let c = case.c;
+        let mask = |k: usize| case.mask.as_ref().map_or(1.0, |m| m[k / c]);
+        let norm: f64 = (0..x.len()).map(mask).sum::<f64>().max(1.0);
+        let direct: f64 = (0..x.len())
+            .map(|k| mask(k) * (x[k] - case.y[k]).abs())
+            .sum::<f64>()
+            / norm;
+        assert!((value - direct).abs() < 1e-14, "{value} vs {direct}");
+        for k in 0..x.len() {
+            let d = x[k] - case.y[k];
+            let expected = if d == 0.0 {
+                0.0
+            } else {
+                mask(k) * d.signum() / norm
+            };
+            assert!(
+                (grad[k] - expected).abs() <= 1e-13 * expected.abs(),
+                "{} vs {expected}",
+                grad[k]
+            );
+        }
+    }
+}

@@ -1,0 +1,196 @@
+"""urhead.ops.ssim_loss / l1_loss against the plain-torch references (value and gradient),
+finite differences, edge cases, input errors and thread-count determinism."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from urhead.errors import DTypeError, InvalidArgumentError, NonFiniteError, ShapeError
+from urhead.losses import l1, ssim
+from urhead.ops import _reference as ref
+from urhead.ops import l1_loss, ssim_loss
+
+OPS = {"ssim": (ssim_loss, ref.ssim_loss), "l1": (l1_loss, ref.l1_loss)}
+
+
+def images(h, w, c=3, dtype=torch.float64, seed=0, noise=0.15):
+    """A target and a nearby image, as a render and its photo."""
+    g = torch.Generator().manual_seed(seed)
+    target = torch.rand(h, w, c, generator=g, dtype=torch.float64)
+    image = (target + noise * torch.randn(h, w, c, generator=g, dtype=torch.float64)).clamp(0, 1)
+    return image.to(dtype), target.to(dtype)
+
+
+def make_mask(kind, h, w, dtype=torch.float64, seed=1):
+    g = torch.Generator().manual_seed(seed)
+    if kind == "none":
+        return None
+    if kind == "binary":
+        return torch.rand(h, w, generator=g) > 0.4
+    if kind == "soft":
+        return torch.rand(h, w, generator=g, dtype=torch.float64).to(dtype)
+    if kind == "zero":
+        return torch.zeros(h, w, dtype=dtype)
+    if kind == "pixel":
+        m = torch.zeros(h, w, dtype=dtype)
+        m[h // 2, w // 3] = 1
+        return m
+    raise ValueError(kind)
+
+
+def value_and_grad(fn, image, target, mask):
+    x = image.clone().requires_grad_(True)
+    value = fn(x, target, mask)
+    value.backward()
+    return value.detach(), x.grad
+
+
+@pytest.mark.parametrize("op", OPS)
+@pytest.mark.parametrize("mask_kind", ["none", "binary", "soft", "zero", "pixel"])
+@pytest.mark.parametrize("shape", [(1, 1, 3), (5, 7, 3), (37, 150, 3), (140, 23, 1)])
+def test_float64_matches_reference(op, mask_kind, shape):
+    image, target = images(*shape)
+    mask = make_mask(mask_kind, *shape[:2])
+    ours, ref_fn = OPS[op]
+    value, grad = value_and_grad(ours, image, target, mask)
+    ref_value, ref_grad = value_and_grad(ref_fn, image, target, mask)
+    assert value.dtype == torch.float64 and value.shape == ()
+    assert abs(value.item() - ref_value.item()) < 1e-14
+    assert (grad - ref_grad).abs().max().item() < 2e-15
+    if mask_kind == "zero":
+        assert value.item() == 0 and grad.abs().max().item() == 0
+
+
+@pytest.mark.parametrize("op", OPS)
+def test_float32_matches_reference(op):
+    image, target = images(96, 131, dtype=torch.float32, seed=3)
+    mask = make_mask("soft", 96, 131, torch.float32)
+    ours, ref_fn = OPS[op]
+    value, grad = value_and_grad(ours, image, target, mask)
+    ref_value, ref_grad = value_and_grad(ref_fn, image.double(), target.double(), mask.double())
+    assert grad.dtype == torch.float32
+    # torch's own float32 evaluation is off by up to 6e-8 (value) and 7e-7 (gradient)
+    assert abs(value.item() - ref_value.item()) < 1e-7 * abs(ref_value.item())
+    scale = ref_grad.abs().max().item()
+    assert (grad.double() - ref_grad).abs().max().item() < 1e-6 * scale
+
+
+@pytest.mark.parametrize("mask_kind", ["none", "soft"])
+def test_ssim_gradient_matches_finite_differences(mask_kind):
+    image, target = images(23, 31, seed=5)
+    mask = make_mask(mask_kind, 23, 31)
+    _, grad = value_and_grad(ssim_loss, image, target, mask)
+    g = torch.Generator().manual_seed(7)
+    eps = 1e-6
+    for _ in range(4):
+        direction = torch.randn(image.shape, generator=g, dtype=torch.float64)
+        plus = ssim_loss(image + eps * direction, target, mask).item()
+        minus = ssim_loss(image - eps * direction, target, mask).item()
+        fd = (plus - minus) / (2 * eps)
+        analytic = (grad * direction).sum().item()
+        assert abs(fd - analytic) < 2e-8 * max(abs(analytic), 1e-3)
+
+
+def test_identical_images_score_one_with_zero_gradient():
+    _, target = images(40, 41)
+    value, grad = value_and_grad(ssim_loss, target, target, make_mask("soft", 40, 41))
+    assert abs(value.item() - 1) < 1e-14
+    assert grad.abs().max().item() < 1e-13
+    value, grad = value_and_grad(l1_loss, target, target, None)
+    assert value.item() == 0 and grad.abs().max().item() == 0
+
+
+def test_constant_images_follow_the_luminance_term():
+    # σ = 0 everywhere, so SSIM = (2·a·b + C1) / (a² + b² + C1) away from the zero border.
+    a, b = 0.6, 0.3
+    image = torch.full((30, 30, 3), a, dtype=torch.float64)
+    target = torch.full((30, 30, 3), b, dtype=torch.float64)
+    inner = torch.zeros(30, 30, dtype=torch.float64)
+    inner[5:-5, 5:-5] = 1
+    expected = (2 * a * b + 1e-4) / (a * a + b * b + 1e-4)
+    assert abs(ssim_loss(image, target, inner).item() - expected) < 1e-12
+    value, grad = value_and_grad(ssim_loss, image, target, None)
+    ref_value, ref_grad = value_and_grad(ref.ssim_loss, image, target, None)
+    assert abs(value.item() - ref_value.item()) < 1e-13
+    assert (grad - ref_grad).abs().max().item() < 1e-13
+
+
+def test_losses_module_uses_the_kernel_and_keeps_plain_torch_semantics():
+    image, target = images(33, 45, dtype=torch.float32, seed=9)
+    mask = make_mask("binary", 33, 45)
+    x = image.clone().requires_grad_(True)
+    (ssim(x, target, mask) + l1(x, target, mask)).backward()
+    x_ref = image.double().clone().requires_grad_(True)
+    (
+        ref.ssim_loss(x_ref, target.double(), mask) + ref.l1_loss(x_ref, target.double(), mask)
+    ).backward()
+    assert (x.grad.double() - x_ref.grad).abs().max().item() < 1e-7
+    # a target that requires grad falls back to plain torch and receives a gradient
+    y = target.clone().requires_grad_(True)
+    ssim(image, y, mask).backward()
+    assert y.grad is not None and y.grad.abs().sum() > 0
+
+
+def test_thread_count_does_not_change_bits(monkeypatch):
+    image, target = images(300, 70, dtype=torch.float32, seed=11)
+    mask = make_mask("soft", 300, 70, torch.float32)
+    results = []
+    for threads in ("1", "2", "4"):
+        monkeypatch.setenv("URHEAD_NUM_THREADS", threads)
+        results.append(
+            [t for fn in (ssim_loss, l1_loss) for t in value_and_grad(fn, image, target, mask)]
+        )
+    for other in results[1:]:
+        for a, b in zip(results[0], other, strict=True):
+            assert torch.equal(a, b)
+
+
+def test_scaled_loss_scales_the_gradient():
+    image, target = images(12, 19, seed=13)
+    _, grad = value_and_grad(ssim_loss, image, target, None)
+    x = image.clone().requires_grad_(True)
+    (0.2 * (1 - ssim_loss(x, target))).backward()
+    assert torch.allclose(x.grad, -0.2 * grad, rtol=1e-15, atol=0)
+
+
+def test_no_grad_needed_returns_the_same_value():
+    image, target = images(20, 20, seed=15)
+    with_grad = ssim_loss(image.clone().requires_grad_(True), target)
+    assert ssim_loss(image, target).item() == with_grad.item()
+    assert not ssim_loss(image, target).requires_grad
+
+
+@pytest.mark.parametrize("op", [ssim_loss, l1_loss])
+def test_bad_inputs_raise_typed_errors_naming_the_argument(op):
+    image, target = images(8, 9)
+    bad = image.clone()
+    bad[2, 3, 1] = float("nan")
+    with pytest.raises(NonFiniteError, match="image"):
+        op(bad, target)
+    bad_target = target.clone()
+    bad_target[0, 0, 0] = float("inf")
+    with pytest.raises(NonFiniteError, match="target"):
+        op(image, bad_target)
+    nan_mask = torch.ones(8, 9, dtype=torch.float64)
+    nan_mask[1, 1] = float("nan")
+    with pytest.raises(NonFiniteError, match="mask"):
+        op(image, target, nan_mask)
+    with pytest.raises(InvalidArgumentError, match="mask"):
+        op(image, target, torch.full((8, 9), 1.5, dtype=torch.float64))
+    with pytest.raises(ShapeError, match="target"):
+        op(image, target[:, :8].contiguous())
+    with pytest.raises(ShapeError, match="mask"):
+        op(image, target, torch.ones(9, 8, dtype=torch.float64))
+    with pytest.raises(ShapeError, match="image"):
+        op(image[..., 0].contiguous(), target[..., 0].contiguous())
+    with pytest.raises(ShapeError, match="image"):
+        op(image[:0].contiguous(), target[:0].contiguous())
+    with pytest.raises(DTypeError, match="target"):
+        op(image, target.float())
+    with pytest.raises(DTypeError, match="image"):
+        op(image.half(), target.half())
+    with pytest.raises(InvalidArgumentError, match="contiguous"):
+        op(image.transpose(0, 1), target.transpose(0, 1))
+    with pytest.raises(InvalidArgumentError, match="target"):
+        op(image, target.clone().requires_grad_(True))
