@@ -138,7 +138,7 @@ def _fit_command(subject_dir, out, *extra):
         str(out),
         "--quiet",
         "--iterations",
-        "30",
+        "150",
         "--uv-resolution",
         "64",
         "--initial-gaussians",
@@ -173,15 +173,17 @@ def test_resume_after_kill_9_reaches_the_same_result(subject_dir, tmp_path):
         ckpt = find_checkpoint(killed)
         if ckpt is not None and (ckpt / "state.pt").is_file():
             state = torch.load(ckpt / "state.pt", weights_only=True)
-            if state["iteration"] >= 10:
+            if state["iteration"] >= 20:
                 break
         time.sleep(0.05)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     assert not (killed / "metrics.json").exists(), "the kill came too late to test resuming"
-    subprocess.run(
-        _fit_command(subject_dir, killed, "--resume"), check=True, env=env, capture_output=True
+    resumed = subprocess.run(
+        _fit_command(subject_dir, killed, "--resume"), env=env, capture_output=True, text=True
     )
+    assert resumed.returncode == 0, resumed.stderr
+    assert "resuming from" in resumed.stderr
     a, b = load_avatar(straight / "avatar"), load_avatar(killed / "avatar")
     assert torch.equal(a.maps, b.maps)
     assert torch.equal(a.gaussian_uv, b.gaussian_uv)

@@ -141,3 +141,26 @@ def test_deterministic_across_thread_counts(monkeypatch, stability):
     differing = sum(int((r != results[0]).sum()) for r in results)
     stability.record(27, "sparse Adam: elements differing across 1, 2, 3 threads", differing, 0)
     assert all(torch.equal(r, results[0]) for r in results)
+
+
+def test_state_dict_round_trip_keeps_int32_steps_and_continues_identically():
+    g = torch.Generator().manual_seed(0)
+    a = torch.rand(8, 8, 3, generator=g)
+    b = a.clone()
+    opt_a, opt_b = SparseAdam([a], lr=1e-2), SparseAdam([b], lr=1e-2)
+    grads = [
+        torch.randn(8, 8, 3, generator=g) * (torch.rand(8, 8, 1, generator=g) > 0.5)
+        for _ in range(4)
+    ]
+    for grad in grads[:2]:
+        a.grad, b.grad = grad.clone(), grad.clone()
+        opt_a.step()
+        opt_b.step()
+    restored = SparseAdam([b], lr=1e-2)
+    restored.load_state_dict(opt_b.state_dict())
+    assert restored.state[b]["steps"].dtype == torch.int32
+    for grad in grads[2:]:
+        a.grad, b.grad = grad.clone(), grad.clone()
+        opt_a.step()
+        restored.step()
+    assert torch.equal(a, b)

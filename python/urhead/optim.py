@@ -82,6 +82,17 @@ class SparseAdam(torch.optim.Optimizer):
                         "SparseAdam parameters must be contiguous tables (..., C)"
                     )
 
+    def load_state_dict(self, state_dict: dict) -> None:
+        """As torch's, then the per-texel step counts are made int32 again: torch casts
+        every floating-point-able state tensor to the parameter's dtype (exact for counts
+        below 2²⁴)."""
+        super().load_state_dict(state_dict)
+        for group in self.param_groups:
+            for p in group["params"]:
+                state = self.state[p]
+                if "steps" in state:
+                    state["steps"] = state["steps"].to(torch.int32).contiguous()
+
     @torch.no_grad()
     def step(self, closure=None):
         loss = None

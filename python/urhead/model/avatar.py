@@ -33,6 +33,7 @@ from urhead.ops import (
     rasterize_gaussians,
     texture,
 )
+from urhead.ops.texture import TextureGather
 from urhead.sh import SH_C0, sh_basis
 
 POSE_SIZE = 15
@@ -191,6 +192,7 @@ class Avatar:
         gaussians: bool = True,
         occlusion_aware: bool = True,
         normals: bool = False,
+        gather: TextureGather | None = None,
     ) -> Render:
         """Renders one frame. Differentiable in ``maps`` (sparse gradient) and ``params``.
 
@@ -200,13 +202,16 @@ class Avatar:
             gaussians: include the Gaussian layer (False renders the mesh branch alone).
             occlusion_aware: skip Gaussian samples behind the mesh (depth + ``depth_eps``).
             normals: also return the mesh normals at covered pixels (for the normal loss).
+            gather: route the maps' gradient of every lookup into this
+                :class:`~urhead.ops.TextureGather` (one coalesced gradient per iteration)
+                instead of ``maps.grad``.
         """
         verts, rotations = self.skin(params)
-        displaced, offsets = self.displace(verts, rotations)
-        mesh = self.shade_mesh(displaced, offsets, rotations, camera, normals)
+        displaced, offsets = self.displace(verts, rotations, gather)
+        mesh = self.shade_mesh(displaced, offsets, rotations, camera, normals, gather)
         if not (gaussians and self.layout.gaussians and self.num_gaussians > 0):
             return Render(mesh.image, mesh, None)
-        lift = self.lift_gaussians(verts, rotations, camera)
+        lift = self.lift_gaussians(verts, rotations, camera, gather)
         splats = self.splat(lift, camera, mesh.depth if occlusion_aware else None)
         image = splats.image + splats.transmittance[..., None] * mesh.image
         return Render(image, mesh, splats)
@@ -223,15 +228,20 @@ class Avatar:
         )
         return skinned.verts[0], skinned.rotations[0]
 
-    def displace(self, verts, rotations) -> tuple[torch.Tensor, torch.Tensor]:
+    def lookup(self, uv: torch.Tensor, gather: TextureGather | None = None) -> torch.Tensor:
+        """The maps at UV points (..., 2) → (..., channels), bilinear."""
+        return texture(self.maps, uv) if gather is None else gather.sample(uv)
+
+    def displace(self, verts, rotations, gather=None) -> tuple[torch.Tensor, torch.Tensor]:
         """``(v̂ (V, 3), v̂ − v)``: each vertex moved by D along its posed normal."""
-        layout = self.layout
-        at_vertex = texture(self.maps, self.tables()["vertex_uv"])
-        vertex_normal = _rotate_normalize(rotations, at_vertex[:, layout.normal])
-        offsets = at_vertex[:, layout.displacement, None] * vertex_normal
+        at_vertex = self.layout.split(self.lookup(self.tables()["vertex_uv"], gather))
+        vertex_normal = _rotate_normalize(rotations, at_vertex.normal)
+        offsets = at_vertex.displacement[:, None] * vertex_normal
         return verts + offsets, offsets
 
-    def shade_mesh(self, displaced, offsets, rotations, camera, want_normals) -> MeshRender:
+    def shade_mesh(
+        self, displaced, offsets, rotations, camera, want_normals, gather=None
+    ) -> MeshRender:
         """The mesh branch: rasterize, look the maps up at covered pixels, SH colour,
         antialias over the background."""
         t = self.tables()
@@ -241,11 +251,11 @@ class Avatar:
         h, w = camera.height, camera.width
         pixels = (raster.tri_id.reshape(-1) >= 0).nonzero()[:, 0]
         uv = uv_image.reshape(-1, 2)[pixels]
-        samples = texture(self.maps, uv.contiguous())
+        samples = layout.split(self.lookup(uv.contiguous(), gather))
         rot_image = interpolate(rotations.reshape(-1, 9), raster, t["faces"])
         pixel_rot = rot_image.reshape(-1, 9)[pixels].reshape(-1, 3, 3)
         rays = self._pixel_rays(camera)[pixels]
-        rgb = self._sh_color(samples[:, layout.color], rays, pixel_rot.detach())
+        rgb = self._sh_color(samples.color, rays, pixel_rot.detach())
         background = torch.cat([self.background, self.background.new_zeros(1)])
         flat = background.expand(h * w, 4).clone()
         flat = flat.index_put((pixels,), torch.cat([rgb, rgb.new_ones(rgb.shape[0], 1)], 1))
@@ -254,7 +264,7 @@ class Avatar:
         )
         normals = None
         if want_normals:
-            world = _rotate_normalize(pixel_rot, samples[:, layout.normal])
+            world = _rotate_normalize(pixel_rot, samples.normal)
             normals = world @ camera.viewmat[:3, :3].T
         return MeshRender(
             shaded[..., :3],
@@ -267,7 +277,7 @@ class Avatar:
             offsets,
         )
 
-    def lift_gaussians(self, verts, rotations, camera) -> GaussianLift:
+    def lift_gaussians(self, verts, rotations, camera, gather=None) -> GaussianLift:
         """Each Gaussian's attributes from its UV point: position P + D·n on the posed
         surface, rotation from the posed normal, scale, opacity and colour from the maps."""
         layout = self.layout
@@ -275,18 +285,18 @@ class Avatar:
         bary = self.gaussian_bary[:, :, None]
         surface = (verts[face_verts] * bary).sum(1)
         frames = (rotations[face_verts] * bary[..., None]).sum(1)
-        samples = texture(self.maps, self.gaussian_uv)
-        normal = _rotate_normalize(frames, samples[:, layout.normal])
-        means = surface + samples[:, layout.displacement, None] * normal
-        sh = samples[:, layout.color].reshape(-1, layout.sh_coeffs, 3)
+        samples = layout.split(self.lookup(self.gaussian_uv, gather))
+        normal = _rotate_normalize(frames, samples.normal)
+        means = surface + samples.displacement[:, None] * normal
+        sh = samples.color.reshape(-1, layout.sh_coeffs, 3)
         rays = means.detach() - camera.center
         rays = rays / rays.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         return GaussianLift(
             means=means,
             quats=normal_to_quat(normal),
-            scales=samples[:, layout.scale].exp(),
-            opacities=torch.sigmoid(samples[:, layout.opacity]),
-            colors=self._sh_color(samples[:, layout.color], rays, frames.detach()),
+            scales=samples.scale.exp(),
+            opacities=torch.sigmoid(samples.opacity),
+            colors=self._sh_color(samples.color, rays, frames.detach()),
             sh=sh,
             frames=frames.detach(),
         )
@@ -315,10 +325,11 @@ class Avatar:
         k = self.layout.sh_coeffs
         if k == 1:
             return (coeffs * SH_C0 + 0.5).clamp_min(0.0)
-        local = (rays[:, None, :] @ rotation)[:, 0]
+        local = (rays[:, :, None] * rotation).sum(1)  # Rᵀ·ray
         local = local / local.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         basis = sh_basis(local, self.layout.sh_degree)
-        rgb = torch.bmm(basis[:, None, :], coeffs.reshape(-1, k, 3))[:, 0]
+        # Elementwise: torch's batched 1×K·K×3 matmuls are far slower on the CPU.
+        rgb = (basis[:, :, None] * coeffs.reshape(-1, k, 3)).sum(1)
         return (rgb + 0.5).clamp_min(0.0)
 
     def _pixel_rays(self, camera: Camera) -> torch.Tensor:
@@ -334,7 +345,7 @@ class Avatar:
 
 def _rotate_normalize(rotations: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
     """(N, 3, 3) rotations applied to (N, 3) normals, normalised (zero stays zero)."""
-    n = (rotations @ normals[:, :, None])[:, :, 0]
+    n = (rotations * normals[:, None, :]).sum(-1)
     return n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 

@@ -8,8 +8,24 @@ Gaussian-only maps (O, S) are left out when a fit has no Gaussian branch.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
+
+
+class MapSamples(NamedTuple):
+    """Map values at some UV points (leading dimensions ``...``)."""
+
+    color: torch.Tensor
+    """(..., 3K) SH coefficients, coefficient-major."""
+    normal: torch.Tensor
+    """(..., 3) rest-pose normal."""
+    displacement: torch.Tensor
+    """(...,) metres."""
+    opacity: torch.Tensor | None
+    """(...,) logit; None without the Gaussian branch."""
+    scale: torch.Tensor | None
+    """(..., 3) log standard deviations; None without the Gaussian branch."""
 
 
 @dataclass(frozen=True)
@@ -62,6 +78,15 @@ class MapLayout:
     @property
     def channels(self) -> int:
         return 3 * self.sh_coeffs + (8 if self.gaussians else 4)
+
+    def split(self, samples: torch.Tensor) -> MapSamples:
+        """(..., channels) map samples → their maps, by one ``split`` (its backward is
+        one concatenation, where per-map slicing would allocate a zero buffer per map)."""
+        sizes = [3 * self.sh_coeffs, 3, 1] + ([1, 3] if self.gaussians else [])
+        parts = samples.split(sizes, dim=-1)
+        if not self.gaussians:
+            return MapSamples(parts[0], parts[1], parts[2][..., 0], None, None)
+        return MapSamples(parts[0], parts[1], parts[2][..., 0], parts[3][..., 0], parts[4])
 
     def channel_rates(self, color, normal, displacement, opacity, scale) -> torch.Tensor:
         """(channels,) float32 learning rates, one per channel."""

@@ -8,12 +8,13 @@ from urhead.ops.lbs import LbsOutput, lbs
 from urhead.ops.rasterize import RasterOutput, UvRasterOutput, rasterize, rasterize_uv
 from urhead.ops.splat import SplatOutput, normal_to_quat, rasterize_gaussians
 from urhead.ops.ssim import l1_loss, ssim_loss
-from urhead.ops.texture import texture
+from urhead.ops.texture import TextureGather, texture
 
 __all__ = [
     "LbsOutput",
     "RasterOutput",
     "SplatOutput",
+    "TextureGather",
     "UvRasterOutput",
     "antialias",
     "antialias_topology",

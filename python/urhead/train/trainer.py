@@ -26,7 +26,7 @@ from urhead.eval import evaluate_frames
 from urhead.losses import psnr
 from urhead.model import ErrorAccumulator, UvSurface, build_avatar, save_avatar, set_gaussians
 from urhead.model.avatar import Avatar, Render
-from urhead.ops import texture
+from urhead.ops import TextureGather, texture
 from urhead.optim import SparseAdam
 from urhead.train.checkpoint import (
     find_checkpoint,
@@ -218,12 +218,14 @@ class Trainer:
         for group in state.maps_opt.param_groups:
             group["lr"] = state.map_lr * uv_lr_factor(c, it)
         row_params = F.embedding(torch.tensor([row]), avatar.frame_params, sparse=True)[0]
+        gather = TextureGather(avatar.maps)
         render = avatar.render(
             avatar.split_params(row_params),
             frame.camera,
             gaussians=self.gaussians,
             occlusion_aware=c.occlusion_aware,
             normals=self.use_normals,
+            gather=gather,
         )
         loss = training_loss(
             render,
@@ -236,6 +238,7 @@ class Trainer:
             use_normals=self.use_normals,
         )
         loss.total.backward()
+        avatar.maps.grad = gather.gradient()
         state.maps_opt.step()
         state.frames_opt.step()
         avatar.maps.grad = None
