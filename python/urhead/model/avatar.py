@@ -86,6 +86,9 @@ class GaussianRender(NamedTuple):
     """(N,) opacities in (0, 1)."""
     sh: torch.Tensor
     """(N, K, 3) SH coefficients."""
+    rotations: torch.Tensor | None = None
+    """(N, 3, 3) skinning rotation at each Gaussian (barycentric blend of its face's
+    vertex rotations): the frame the SH colours are evaluated in."""
 
 
 class Render(NamedTuple):
@@ -275,7 +278,7 @@ class Avatar:
             depth_eps=self.depth_eps,
         )
         return GaussianRender(
-            out.image, out.transmittance, out.radii, means, quats, scales, opacities, sh
+            out.image, out.transmittance, out.radii, means, quats, scales, opacities, sh, rot
         )
 
     def _sh_color(self, coeffs: torch.Tensor, rays: torch.Tensor, rotation: torch.Tensor):
