@@ -55,10 +55,7 @@ def open_subject(opened: OpenedAvatar, subject: Path | None, *, required: bool =
         subject = Path(recorded)
     if not Path(subject).is_dir():
         raise FileNotFoundError(f"--subject {subject}: no such directory")
-    loaded = load_subject(subject)
-    if (loaded.width, loaded.height) == (0, 0):
-        raise InvalidArgumentError(f"--subject {subject}: no frames")
-    return loaded
+    return load_subject(subject)
 
 
 def split_frames(subject, split: str):
