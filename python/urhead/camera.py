@@ -60,6 +60,21 @@ class Camera:
             self.far,
         )
 
+    def to_dict(self) -> dict:
+        """JSON-ready fields (``from_dict`` inverts it)."""
+        return {
+            "K": self.K.tolist(),
+            "viewmat": self.viewmat.tolist(),
+            "width": self.width,
+            "height": self.height,
+            "near": self.near,
+            "far": self.far,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Camera:
+        return cls(d["K"], d["viewmat"], int(d["width"]), int(d["height"]), d["near"], d["far"])
+
     @property
     def fx(self) -> float:
         return float(self.K[0, 0])

@@ -11,7 +11,15 @@ import argparse
 import importlib
 import sys
 
-COMMAND_MODULES = ("urhead.head.convert", "urhead.data.synthetic", "urhead.train.command")
+COMMAND_MODULES = (
+    "urhead.head.convert",
+    "urhead.data.synthetic",
+    "urhead.train.command",
+    "urhead.use.evaluate",
+    "urhead.use.render",
+    "urhead.use.reenact",
+    "urhead.use.export",
+)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -340,7 +340,15 @@ class Trainer:
             "metric_region": "inside the foreground mask, on the subject's background",
             "background": avatar.background.tolist(),
         }
-        save_avatar(avatar, self.out / "avatar", extra={"config": asdict(c), "metrics": metrics})
+        recorded = {
+            "subject": str(Path(self.subject.root).resolve()),
+            "camera": self.subject.train.records[0].camera.to_dict(),
+        }
+        save_avatar(
+            avatar,
+            self.out / "avatar",
+            extra={"config": asdict(c), "metrics": metrics, **recorded},
+        )
         _write_history(self.out / PSNR_CSV, history)
         plot_psnr_vs_time(history, self.out / "psnr_vs_time.png", title=_title(c, avatar))
         _atomic_text(self.out / "metrics.json", json.dumps(metrics, indent=2))

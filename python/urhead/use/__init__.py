@@ -1,0 +1,1 @@
+"""Using a fitted avatar: ``urhead eval``, ``render``, ``reenact`` and ``export``."""

@@ -1,0 +1,145 @@
+"""What the avatar commands share: opening an avatar and its subject, choosing frames,
+the camera to render from, and writing output files atomically."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from urhead.camera import Camera
+from urhead.errors import InvalidArgumentError
+from urhead.model import Avatar, load_avatar
+
+
+@dataclass
+class OpenedAvatar:
+    avatar: Avatar
+    meta: dict
+    """avatar.json: the fit's config, metrics and, for fits since the recording was added,
+    ``subject`` (its folder) and ``camera`` (the training camera)."""
+    path: Path
+
+    @property
+    def occlusion_aware(self) -> bool:
+        return bool(self.meta.get("config", {}).get("occlusion_aware", True))
+
+
+def open_avatar(path: Path) -> OpenedAvatar:
+    """Loads an avatar directory with an error naming the argument."""
+    path = Path(path)
+    if not path.is_dir():
+        raise FileNotFoundError(f"AVATAR {path}: no such directory (pass the fit's OUT/avatar)")
+    avatar = load_avatar(path)
+    meta = json.loads((path / "avatar.json").read_text())
+    return OpenedAvatar(avatar, meta, path)
+
+
+def open_subject(opened: OpenedAvatar, subject: Path | None, *, required: bool = True):
+    """The subject given with ``--subject``, else the one the fit recorded; None when
+    neither exists and ``required`` is False."""
+    from urhead.data import load_subject
+
+    if subject is None:
+        recorded = opened.meta.get("subject")
+        if recorded is None or not Path(recorded).is_dir():
+            if not required:
+                return None
+            where = "records no subject" if recorded is None else f"records {recorded}, gone"
+            raise InvalidArgumentError(f"--subject is required: the avatar {where}")
+        subject = Path(recorded)
+    if not Path(subject).is_dir():
+        raise FileNotFoundError(f"--subject {subject}: no such directory")
+    return load_subject(subject)
+
+
+def split_frames(subject, split: str):
+    frames = getattr(subject, split)
+    if len(frames) == 0:
+        raise InvalidArgumentError(
+            f"--split {split}: the subject {subject.root} has no {split} frames"
+        )
+    return frames
+
+
+def avatar_camera(opened: OpenedAvatar, subject) -> Camera:
+    """The camera the avatar was fitted with (recorded in avatar.json), else the subject's."""
+    if "camera" in opened.meta:
+        return Camera.from_dict(opened.meta["camera"])
+    if subject is not None:
+        for split in (subject.train, subject.test, subject.val):
+            if len(split):
+                return split.records[0].camera
+    raise InvalidArgumentError("--subject is required: the avatar records no camera to render from")
+
+
+def parse_timesteps(spec: str | None, available: torch.Tensor) -> list[int]:
+    """``--frames`` "0,3,10-20" (timesteps, ranges inclusive) → sorted unique timesteps, all
+    of which must be among ``available``; None → all of them."""
+    known = sorted(int(t) for t in available.tolist())
+    if spec is None:
+        return known
+    wanted: set[int] = set()
+    for part in spec.split(","):
+        match = re.fullmatch(r"\s*(\d+)\s*(?:-\s*(\d+)\s*)?", part)
+        if match is None or (match[2] is not None and int(match[2]) < int(match[1])):
+            raise InvalidArgumentError(
+                f"--frames {spec!r}: {part.strip()!r} is not a timestep or a range a-b"
+            )
+        first = int(match[1])
+        wanted.update(range(first, int(match[2] or first) + 1))
+    unknown = sorted(wanted - set(known))
+    if unknown:
+        raise InvalidArgumentError(
+            f"--frames: timesteps {_short(unknown)} are not frames of this avatar "
+            f"(it has {len(known)} timesteps, {known[0]}–{known[-1]})"
+        )
+    return sorted(wanted)
+
+
+def _short(values: list[int]) -> str:
+    return ", ".join(map(str, values[:8])) + (" …" if len(values) > 8 else "")
+
+
+def check_output_dir(path: Path, option: str) -> Path:
+    """An output folder must be a folder or not exist yet; its parent is created."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise InvalidArgumentError(f"{option} {path}: exists and is not a directory")
+    return path
+
+
+def check_output_file(path: Path, option: str, suffix: str) -> Path:
+    path = Path(path)
+    if path.suffix.lower() != suffix:
+        raise InvalidArgumentError(f"{option} {path}: must end in {suffix}")
+    if path.is_dir():
+        raise InvalidArgumentError(f"{option} {path}: is a directory")
+    return path
+
+
+def temporary_sibling(path: Path) -> Path:
+    """A hidden name next to ``path`` with the same suffix (writers pick formats by it)."""
+    return path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
+
+
+def write_file_atomically(path: Path, write) -> None:
+    """Calls ``write(tmp_path)``, then renames the file into place."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = temporary_sibling(path)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def to_uint8(image: torch.Tensor) -> np.ndarray:
+    """(H, W, 3) float RGB in [0, 1] → uint8 BGR for OpenCV."""
+    rgb = (image.detach().clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy()
+    return np.ascontiguousarray(rgb[..., ::-1])

@@ -1,0 +1,220 @@
+"""``urhead eval AVATAR``: image quality, temporal stability, speed and size of an avatar on
+a subject's held-out frames (FORMATS.md "Evaluation protocol").
+
+Every metric is inside the frame's head mask on the subject's background (the avatar's
+``background``): PSNR and SSIM (:mod:`urhead.losses`), PSNR of the mesh branch alone,
+LPIPS-alex / LPIPS-vgg when their weights are on disk (:mod:`urhead.use.lpips`).
+
+Temporal stability, over consecutive frame pairs (same camera, timesteps t−1 and t):
+- ``temporal_error_change``: the mean absolute change of the signed error image,
+  |(Î_t − I_t) − (Î_{t−1} − I_{t−1})|, inside both frames' masks. Flicker the ground truth
+  does not have raises it; an avatar whose error is steady keeps it low. Always reported.
+- ``temporal_lpips_<variant>``: |LPIPS(Î_t, Î_{t−1}) − LPIPS(I_t, I_{t−1})|, how much more
+  (or less) the rendering changes perceptually between frames than the video does; only
+  with LPIPS weights.
+Each is reported as mean and variance over the pairs.
+
+Speed: the median over frames of one forward render (no gradients, after one warm-up
+render), as frames per second, at the subject's resolution.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import statistics
+import time
+from pathlib import Path
+
+import torch
+
+from urhead.eval.metrics import frame_params
+from urhead.losses import psnr, ssim
+from urhead.use.common import (
+    check_output_file,
+    open_avatar,
+    open_subject,
+    split_frames,
+    write_file_atomically,
+)
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "eval",
+        help="score an avatar on a subject's held-out frames",
+        description="PSNR, SSIM, LPIPS (alex, vgg: only when their weight files are on "
+        "disk, see --lpips-weights), temporal stability, rendering FPS and Gaussian count "
+        "of an avatar, inside the head mask on the subject's background. Prints a table "
+        "and writes JSON (default AVATAR/eval_SPLIT.json).",
+    )
+    p.add_argument("avatar", type=Path, help="avatar directory (the fit's OUT/avatar)")
+    p.add_argument(
+        "--subject",
+        type=Path,
+        default=None,
+        help="subject folder (default: the one the fit recorded)",
+    )
+    p.add_argument("--split", choices=("test", "val", "train"), default="test")
+    p.add_argument(
+        "--lpips-weights",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="folder with alex.pth/vgg.pth (lpips v0.1) and alexnet*.pth/vgg16*.pth "
+        "(torchvision); default $URHEAD_LPIPS_DIR, then ~/.cache/urhead/lpips",
+    )
+    p.add_argument("--json", type=Path, default=None, help="where to write the JSON")
+    p.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from urhead.train.command import configure_threads
+    from urhead.use.lpips import load_lpips
+
+    opened = open_avatar(args.avatar)
+    out = check_output_file(
+        args.json if args.json is not None else opened.path / f"eval_{args.split}.json",
+        "--json",
+        ".json",
+    )
+    subject = open_subject(opened, args.subject)
+    frames = split_frames(subject, args.split)
+    nets, notes = load_lpips(args.lpips_weights)
+    for note in notes:
+        print(note)
+    configure_threads()
+    result = evaluate_avatar(
+        opened.avatar, frames, occlusion_aware=opened.occlusion_aware, lpips=nets
+    )
+    result.update(
+        avatar=str(opened.path),
+        subject=str(subject.root),
+        split=args.split,
+        lpips_skipped=notes,
+    )
+    write_file_atomically(out, lambda tmp: tmp.write_text(json.dumps(result, indent=2)))
+    print(format_table(result))
+    print(f"wrote {out}")
+    return 0
+
+
+@torch.no_grad()
+def evaluate_avatar(avatar, frames, *, occlusion_aware: bool = True, lpips=None) -> dict:
+    """Scores ``frames`` (dataset frames with image, mask, camera, flame); ``lpips`` maps a
+    variant name ("alex", "vgg") to a scorer ``(image, target, mask) -> float``. Returns
+    the JSON-ready metrics (module docstring)."""
+    lpips = lpips or {}
+    if len(frames) == 0:
+        raise ValueError("frames is empty: nothing to evaluate")
+    first = frames[0]
+    avatar.render(frame_params(avatar, first), first.camera, occlusion_aware=occlusion_aware)
+    per = {"psnr": [], "ssim": [], "psnr_mesh_only": [], "seconds": []}
+    per.update({f"lpips_{v}": [] for v in lpips})
+    temporal = {"temporal_error_change": []}
+    temporal.update({f"temporal_lpips_{v}": [] for v in ("alex", "vgg")})
+    previous = None
+    for frame in frames:
+        params = frame_params(avatar, frame)
+        start = time.perf_counter()
+        out = avatar.render(params, frame.camera, occlusion_aware=occlusion_aware)
+        per["seconds"].append(time.perf_counter() - start)
+        image = out.image.clamp(0, 1)
+        per["psnr"].append(float(psnr(image, frame.image, frame.mask)))
+        per["ssim"].append(float(ssim(image, frame.image, frame.mask)))
+        per["psnr_mesh_only"].append(
+            float(psnr(out.mesh.image.clamp(0, 1), frame.image, frame.mask))
+        )
+        for v, net in lpips.items():
+            per[f"lpips_{v}"].append(net(image, frame.image, frame.mask))
+        if previous is not None and _consecutive(previous[0], frame):
+            prev_frame, prev_image = previous
+            mask = frame.mask * prev_frame.mask
+            change = (image - frame.image) - (prev_image - prev_frame.image)
+            temporal["temporal_error_change"].append(float(_masked_mean(change.abs(), mask)))
+            for v, net in lpips.items():
+                ours = net(image, prev_image, mask)
+                truth = net(frame.image, prev_frame.image, mask)
+                temporal[f"temporal_lpips_{v}"].append(abs(ours - truth))
+        previous = (frame, image)
+    median = statistics.median(per["seconds"])
+    result = {
+        "frames": len(frames),
+        "psnr": _mean(per["psnr"]),
+        "ssim": _mean(per["ssim"]),
+        "psnr_mesh_only": _mean(per["psnr_mesh_only"]),
+    }
+    for v in ("alex", "vgg"):
+        result[f"lpips_{v}"] = _mean(per[f"lpips_{v}"]) if v in lpips else None
+    for key, values in temporal.items():
+        result[f"{key}_mean"] = _mean(values) if values else None
+        result[f"{key}_var"] = _var(values) if values else None
+    result["temporal_pairs"] = len(temporal["temporal_error_change"])
+    result.update(
+        render_fps=1.0 / median,
+        render_ms_median=1000.0 * median,
+        resolution=[first.camera.width, first.camera.height],
+        num_gaussians=avatar.num_gaussians,
+        metric_region="inside each frame's foreground mask, on the avatar's background",
+        background=avatar.background.tolist(),
+        per_frame={
+            "timestep": [f.timestep for f in frames],
+            "psnr": per["psnr"],
+            "ssim": per["ssim"],
+        },
+    )
+    return result
+
+
+def _consecutive(a, b) -> bool:
+    return b.timestep == a.timestep + 1 and b.camera_index == a.camera_index
+
+
+def _masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    weight = mask[..., None].expand_as(values)
+    return (values * weight).sum() / weight.sum().clamp_min(1)
+
+
+def _mean(xs) -> float:
+    return math.fsum(xs) / len(xs)
+
+
+def _var(xs) -> float:
+    m = _mean(xs)
+    return math.fsum((x - m) ** 2 for x in xs) / len(xs)
+
+
+def format_table(r: dict) -> str:
+    def fmt(v, spec):
+        return "skipped" if v is None else format(v, spec)
+
+    rows = [
+        ("frames", str(r["frames"])),
+        ("PSNR (dB)", fmt(r["psnr"], ".3f")),
+        ("SSIM", fmt(r["ssim"], ".4f")),
+        ("PSNR mesh only (dB)", fmt(r["psnr_mesh_only"], ".3f")),
+        ("LPIPS alex", fmt(r["lpips_alex"], ".4f")),
+        ("LPIPS vgg", fmt(r["lpips_vgg"], ".4f")),
+        (
+            "temporal error change",
+            f"{fmt(r['temporal_error_change_mean'], '.5f')} "
+            f"(var {fmt(r['temporal_error_change_var'], '.2e')}, {r['temporal_pairs']} pairs)",
+        ),
+    ]
+    for v in ("alex", "vgg"):
+        if r.get(f"temporal_lpips_{v}_mean") is not None:
+            rows.append(
+                (
+                    f"temporal LPIPS {v}",
+                    f"{r[f'temporal_lpips_{v}_mean']:.5f} (var {r[f'temporal_lpips_{v}_var']:.2e})",
+                )
+            )
+    w, h = r["resolution"]
+    rows += [
+        (f"render FPS ({w}×{h})", f"{r['render_fps']:.1f} ({r['render_ms_median']:.1f} ms median)"),
+        ("Gaussians", str(r["num_gaussians"])),
+    ]
+    width = max(len(k) for k, _ in rows)
+    lines = [f"{k:<{width}}  {v}" for k, v in rows]
+    return "\n".join([f"{r['split']} split, {r['metric_region']}", *lines])

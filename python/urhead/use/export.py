@@ -1,0 +1,204 @@
+"""``urhead export AVATAR``: per-frame 3DGS PLY files, textured OBJ meshes and the UV maps.
+
+- ``--ply DIR``: ``DIR/{timestep:05d}.ply`` per frame, the Gaussian layer in world space
+  (:mod:`urhead.use.ply`). The avatar evaluates SH colours in each Gaussian's rest frame;
+  the export rotates the coefficients into the world frame (:mod:`urhead.use.sh_rotation`)
+  with the nearest proper rotation to the Gaussian's blended skinning rotation. Where a
+  face's vertices share one joint rotation (everywhere but the blend seams of neck, jaw
+  and eyes) that rotation is exact, so the file renders the avatar's Gaussian layer.
+- ``--mesh DIR``: ``DIR/{timestep:05d}.obj`` per frame (displaced posed mesh with the
+  FLAME UV layout), one ``material.mtl`` and ``texture.png`` (the colour map's DC term).
+- ``--maps DIR``: every UV map as float EXR (``color_sh{k:02d}.exr`` RGB per SH
+  coefficient, ``normal.exr``, ``displacement.exr``, ``opacity.exr`` logits,
+  ``scale.exr`` log standard deviations) plus PNG previews, image row 0 at v = 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from urhead.model import Avatar
+from urhead.model.io import write_directory_atomically
+from urhead.ops import texture
+from urhead.sh import SH_C0
+from urhead.use.common import (
+    OpenedAvatar,
+    avatar_camera,
+    check_output_dir,
+    open_avatar,
+    open_subject,
+    parse_timesteps,
+)
+from urhead.use.exr import write_exr
+from urhead.use.ply import write_gaussian_ply
+from urhead.use.sh_rotation import nearest_rotation, rotate_sh
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "export",
+        help="export an avatar as 3DGS PLY files, textured OBJ meshes or UV maps",
+        description="Export a fitted avatar: per-frame standard 3DGS PLY files in world "
+        "space (--ply), per-frame textured OBJ meshes (--mesh), the UV maps as float EXR "
+        "with PNG previews (--maps). Each output folder is written whole, then renamed "
+        "into place (an existing one is replaced).",
+    )
+    p.add_argument("avatar", type=Path, help="avatar directory (the fit's OUT/avatar)")
+    p.add_argument("--ply", type=Path, default=None, metavar="DIR", help="write PLY files here")
+    p.add_argument("--mesh", type=Path, default=None, metavar="DIR", help="write OBJ files here")
+    p.add_argument("--maps", type=Path, default=None, metavar="DIR", help="write UV maps here")
+    p.add_argument(
+        "--frames",
+        default=None,
+        help="timesteps to export, e.g. '0,5,10-20' (default: every frame of the avatar)",
+    )
+    p.add_argument(
+        "--subject",
+        type=Path,
+        default=None,
+        help="subject folder, only for avatars that record no camera (older fits)",
+    )
+    p.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.ply is None and args.mesh is None and args.maps is None:
+        raise ValueError("nothing to export: pass --ply DIR, --mesh DIR and/or --maps DIR")
+    outputs = {"--ply": args.ply, "--mesh": args.mesh, "--maps": args.maps}
+    for option, path in outputs.items():
+        if path is not None:
+            check_output_dir(path, option)
+    opened = open_avatar(args.avatar)
+    avatar = opened.avatar
+    timesteps = parse_timesteps(args.frames, avatar.timesteps)
+    if args.ply is not None and avatar.num_gaussians == 0:
+        raise ValueError(f"--ply: the avatar {args.avatar} has no Gaussians (a mesh-only fit)")
+    with torch.no_grad():
+        if args.ply is not None or args.mesh is not None:
+            subject = open_subject(opened, args.subject, required=False)
+            camera = avatar_camera(opened, subject)
+        if args.ply is not None:
+            write_directory_atomically(
+                args.ply, lambda tmp: write_ply_frames(avatar, camera, timesteps, tmp)
+            )
+            print(f"wrote {len(timesteps)} PLY files to {args.ply}")
+        if args.mesh is not None:
+            write_directory_atomically(
+                args.mesh, lambda tmp: write_mesh_frames(avatar, camera, timesteps, tmp)
+            )
+            print(f"wrote {len(timesteps)} OBJ meshes to {args.mesh}")
+        if args.maps is not None:
+            write_directory_atomically(args.maps, lambda tmp: write_maps(opened, tmp))
+            print(f"wrote the UV maps to {args.maps}")
+    return 0
+
+
+def world_gaussians(avatar: Avatar, params, camera) -> dict:
+    """The Gaussian layer of one frame as 3DGS file arrays: ``means``, ``normals``,
+    ``sh`` (N, K, 3) world-frame, ``opacity_logits``, ``log_scales``, ``quats``."""
+    with torch.no_grad():
+        verts, rotations = avatar.skin(params)
+        lift = avatar.lift_gaussians(verts, rotations, camera)
+        samples = avatar.layout.split(texture(avatar.maps.detach(), avatar.gaussian_uv))
+    return {
+        "means": lift.means,
+        "normals": _quat_z_axis(lift.quats),
+        "sh": rotate_sh(lift.sh, nearest_rotation(lift.frames)),
+        "opacity_logits": samples.opacity,
+        "log_scales": samples.scale,
+        "quats": lift.quats,
+    }
+
+
+def _quat_z_axis(q: torch.Tensor) -> torch.Tensor:
+    """(N, 4) unit (w, x, y, z) → (N, 3) the rotated z axis (the surface normal here)."""
+    w, x, y, z = q.unbind(-1)
+    return torch.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)], -1)
+
+
+def write_ply_frames(avatar: Avatar, camera, timesteps: list[int], folder: Path) -> None:
+    for t in timesteps:
+        arrays = world_gaussians(avatar, avatar.frame(t), camera)
+        write_gaussian_ply(folder / f"{t:05d}.ply", **arrays)
+
+
+def dc_texture(avatar: Avatar) -> np.ndarray:
+    """(R, R, 3) float RGB in [0, 1]: the colour map's view-independent (DC) term."""
+    dc = avatar.maps.detach()[..., 0:3]
+    return (dc * SH_C0 + 0.5).clamp(0, 1).numpy()
+
+
+def write_mesh_frames(avatar: Avatar, camera, timesteps: list[int], folder: Path) -> None:
+    import cv2
+
+    head = avatar.head
+    rgb = (dc_texture(avatar) * 255 + 0.5).astype(np.uint8)
+    if not cv2.imwrite(str(folder / "texture.png"), rgb[..., ::-1]):
+        raise OSError(f"{folder}: cannot write texture.png")
+    (folder / "material.mtl").write_text(
+        "newmtl avatar\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nillum 1\nmap_Kd texture.png\n"
+    )
+    vt = "".join(f"vt {u:.6f} {v:.6f}\n" for u, v in head.uv_coords)
+    corners = np.stack([head.faces + 1, head.uv_faces + 1], -1).reshape(-1, 6)
+    faces = "".join("f {}/{} {}/{} {}/{}\n".format(*row) for row in corners.tolist())
+    for t in timesteps:
+        verts = avatar.render(avatar.frame(t), camera, gaussians=False).mesh.verts
+        v = "".join(f"v {x:.6f} {y:.6f} {z:.6f}\n" for x, y, z in verts.tolist())
+        text = f"# urhead avatar, timestep {t}\nmtllib material.mtl\n{v}{vt}usemtl avatar\n{faces}"
+        (folder / f"{t:05d}.obj").write_text(text)
+
+
+def write_maps(opened: OpenedAvatar, folder: Path) -> None:
+    import cv2
+
+    avatar = opened.avatar
+    layout = avatar.layout
+    maps = avatar.maps.detach().numpy()
+    coeffs = maps[..., layout.color].reshape(*maps.shape[:2], layout.sh_coeffs, 3)
+    files = {f"color_sh{k:02d}.exr": coeffs[:, :, k] for k in range(layout.sh_coeffs)}
+    files["normal.exr"] = maps[..., layout.normal]
+    files["displacement.exr"] = maps[..., layout.displacement]
+    previews = {
+        "color.png": dc_texture(avatar),
+        "normal.png": 0.5 + 0.5 * _unit(maps[..., layout.normal]),
+        "displacement.png": _stretch(maps[..., layout.displacement]),
+    }
+    if layout.gaussians:
+        files["opacity.exr"] = maps[..., layout.opacity]
+        files["scale.exr"] = maps[..., layout.scale]
+        previews["opacity.png"] = 1 / (1 + np.exp(-maps[..., layout.opacity]))
+        previews["scale.png"] = _stretch(maps[..., layout.scale].mean(-1))
+    for name, image in files.items():
+        write_exr(folder / name, image)
+    for name, image in previews.items():
+        pixels = (np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)
+        if pixels.ndim == 3:
+            pixels = pixels[..., ::-1]
+        if not cv2.imwrite(str(folder / name), pixels):
+            raise OSError(f"{folder}: cannot write {name}")
+    description = {
+        "orientation": "image row 0 is v = 1 (OBJ texture convention)",
+        "color_shKK.exr": "RGB SH coefficient k (3DGS basis, rest-frame view direction)",
+        "normal.exr": "rest-pose normal xyz (not normalised)",
+        "displacement.exr": "displacement along the posed normal, metres (channel Y)",
+        "opacity.exr": "opacity logit (channel Y)",
+        "scale.exr": "log standard deviations, the third along the normal (RGB = 1, 2, 3)",
+        "previews": "color.png DC colour, normal.png 0.5 + 0.5·n, displacement.png and "
+        "scale.png min–max stretched, opacity.png sigmoid",
+        "sh_degree": layout.sh_degree,
+    }
+    (folder / "maps.json").write_text(json.dumps(description, indent=2))
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
+
+
+def _stretch(v: np.ndarray) -> np.ndarray:
+    lo, hi = float(v.min()), float(v.max())
+    return (v - lo) / (hi - lo) if hi > lo else np.zeros_like(v)
