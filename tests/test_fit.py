@@ -103,7 +103,7 @@ def test_sampling_respects_cap_and_budget(fitted):
     assert avatar.num_gaussians <= SMALL_FIT.max_gaussians
     # Every Gaussian sits on the atlas and its barycentrics reproduce its UV point.
     uv_faces = torch.from_numpy(avatar.head.uv_faces.astype(np.int64))
-    corners = torch.from_numpy(avatar.head.uv_coords)[uv_faces[avatar.gaussian_face]]
+    corners = torch.tensor(avatar.head.uv_coords)[uv_faces[avatar.gaussian_face]]
     rebuilt = (corners * avatar.gaussian_bary[:, :, None]).sum(1)
     assert torch.allclose(rebuilt, avatar.gaussian_uv, atol=1e-5)
 
