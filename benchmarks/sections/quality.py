@@ -72,7 +72,7 @@ def run(quick: bool) -> dict:
     try:
         subject = load_subject(synthesize(ROOT / ".cache" / "quality_subject", SUBJECT))
         head = procedural_head(0)
-        iterations = 300 if quick else 1_200
+        iterations = 300 if quick else 800
         base = replace(
             FitConfig(),
             **{
