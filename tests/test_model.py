@@ -1,0 +1,227 @@
+"""The avatar model: map layout, rendering and its gradients, construction helpers, the
+avatar directory (round trip, bad input, atomic replacement) and UV sampling."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from urhead.camera import Camera
+from urhead.head import procedural_head
+from urhead.model import (
+    Avatar,
+    ErrorAccumulator,
+    MapLayout,
+    UvSurface,
+    load_avatar,
+    save_avatar,
+    set_gaussians,
+)
+from urhead.model.init import fill_holes, initial_maps, texel_surface, vertex_normals
+from urhead.model.io import write_directory_atomically
+from urhead.ops import TextureGather
+from urhead.train.loss import nearest_pixel
+
+
+@pytest.fixture(scope="module")
+def head():
+    return procedural_head(0)
+
+
+def make_avatar(head, gaussians=True, sh_degree=1, resolution=32, count=200) -> Avatar:
+    layout = MapLayout(sh_degree, gaussians)
+    e = 10
+    avatar = Avatar(
+        head=head,
+        layout=layout,
+        maps=torch.zeros(1, 1, layout.channels),
+        gaussian_uv=torch.zeros(0, 2),
+        gaussian_face=torch.zeros(0, dtype=torch.int64),
+        gaussian_bary=torch.zeros(0, 3),
+        shape=torch.zeros(5),
+        static_offset=None,
+        timesteps=torch.tensor([3, 7]),
+        frame_params=torch.zeros(2, e + 18),
+        background=torch.ones(3),
+    )
+    t = avatar.tables()
+    raster = texel_surface(head, resolution)
+    avatar.maps = initial_maps(
+        layout, resolution, t["lbs"]["v_template"], t["faces"], raster, None, 0.004
+    )
+    if gaussians:
+        surface = UvSurface(head.uv_coords, head.uv_faces)
+        set_gaussians(avatar, surface, surface.uniform(count, np.random.default_rng(0)))
+    return avatar
+
+
+def camera(size=48) -> Camera:
+    return Camera.look_at(
+        (0.0, 0.0, 0.7), (0.0, 0.0, 0.0), fov_y_degrees=26.0, width=size, height=size
+    )
+
+
+def test_layout_channels_and_split():
+    full, mesh_only = MapLayout(3, True), MapLayout(0, False)
+    assert full.channels == 56 and mesh_only.channels == 7
+    samples = torch.arange(56.0).reshape(1, 56)
+    parts = full.split(samples)
+    assert parts.color.shape == (1, 48) and parts.normal.tolist() == [[48.0, 49.0, 50.0]]
+    assert parts.displacement.item() == 51 and parts.opacity.item() == 52
+    assert parts.scale.tolist() == [[53.0, 54.0, 55.0]]
+    assert mesh_only.split(torch.zeros(2, 7)).opacity is None
+    with pytest.raises(AttributeError):
+        mesh_only.opacity  # noqa: B018
+    rates = full.channel_rates(1.0, 2.0, 3.0, 4.0, 5.0)
+    assert rates[:48].eq(1).all() and rates[51] == 3 and rates[52] == 4 and rates[53:].eq(5).all()
+
+
+def test_render_gradients_reach_every_map_and_the_frame(head):
+    avatar = make_avatar(head)
+    avatar.maps.requires_grad_(True)
+    params = avatar.frame(7)
+    params = type(params)(*(p.clone().requires_grad_(True) for p in params))
+    gather = TextureGather(avatar.maps)
+    out = avatar.render(params, camera(), gather=gather, normals=True)
+    assert out.image.shape == (48, 48, 3) and out.gaussians is not None
+    assert out.mesh.normals.shape == (out.mesh.pixels.numel(), 3)
+    (out.image.sum() + out.mesh.normals.sum()).backward()
+    grad = gather.gradient().coalesce()
+    per_channel = grad.values().abs().sum(0)
+    layout = avatar.layout
+    for name, channels in [
+        ("C", per_channel[layout.color]),
+        ("N", per_channel[layout.normal]),
+        ("D", per_channel[layout.displacement : layout.displacement + 1]),
+        ("O", per_channel[layout.opacity : layout.opacity + 1]),
+        ("S", per_channel[layout.scale]),
+    ]:
+        assert torch.isfinite(channels).all() and channels.sum() > 0, name
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in params)
+    assert avatar.maps.grad is None  # the gather took it
+
+
+def test_gathered_and_autograd_map_gradients_agree(head):
+    avatar = make_avatar(head)
+    cam = camera()
+    avatar.maps.requires_grad_(True)
+    avatar.render(avatar.frame(3), cam).image.square().sum().backward()
+    reference = avatar.maps.grad.coalesce().to_dense()
+    avatar.maps.grad = None
+    gather = TextureGather(avatar.maps)
+    avatar.render(avatar.frame(3), cam, gather=gather).image.square().sum().backward()
+    assert torch.allclose(gather.gradient().to_dense(), reference, atol=1e-5, rtol=1e-4)
+
+
+def test_mesh_only_render_has_no_gaussian_layer(head):
+    avatar = make_avatar(head, gaussians=False)
+    with torch.no_grad():
+        out = avatar.render(avatar.frame(3), camera())
+    assert out.gaussians is None and torch.equal(out.image, out.mesh.image)
+    covered = out.mesh.alpha > 0.99
+    assert covered.any() and (~covered).any()
+    assert torch.allclose(out.image[out.mesh.alpha == 0], torch.ones(3))
+
+
+def test_unknown_timestep_is_a_key_error(head):
+    avatar = make_avatar(head, gaussians=False)
+    with pytest.raises(KeyError, match="timestep 4"):
+        avatar.frame(4)
+
+
+def test_avatar_directory_round_trip_and_errors(head, tmp_path):
+    avatar = make_avatar(head)
+    avatar.frame_params += torch.randn(
+        avatar.frame_params.shape, generator=torch.Generator().manual_seed(1)
+    )
+    path = save_avatar(avatar, tmp_path / "a", extra={"note": "x"})
+    loaded = load_avatar(path)
+    for name in (
+        "maps",
+        "gaussian_uv",
+        "gaussian_face",
+        "gaussian_bary",
+        "frame_params",
+        "timesteps",
+    ):
+        assert torch.equal(getattr(loaded, name), getattr(avatar, name)), name
+    assert loaded.layout == avatar.layout
+    assert json.loads((path / "avatar.json").read_text())["note"] == "x"
+
+    broken = tmp_path / "broken"
+    shutil.copytree(path, broken)
+    (broken / "gaussians.npz").unlink()
+    with pytest.raises(FileNotFoundError, match=r"gaussians\.npz"):
+        load_avatar(broken)
+    shutil.copytree(path, broken, dirs_exist_ok=True)
+    np.save(broken / "maps.npy", np.zeros((4, 4, 3), np.float32))
+    with pytest.raises(ValueError, match=r"maps\.npy"):
+        load_avatar(broken)
+    with pytest.raises(FileNotFoundError, match=r"avatar\.json"):
+        load_avatar(tmp_path / "nothing")
+
+
+def test_directory_write_is_all_or_nothing(tmp_path):
+    target = tmp_path / "d"
+    write_directory_atomically(target, lambda tmp: (tmp / "a.txt").write_text("old"))
+
+    def fails(tmp):
+        (tmp / "a.txt").write_text("new")
+        raise RuntimeError("disk full")
+
+    with pytest.raises(RuntimeError):
+        write_directory_atomically(target, fails)
+    assert (target / "a.txt").read_text() == "old"
+    assert [p.name for p in tmp_path.iterdir()] == ["d"]  # no temporary left behind
+
+
+def test_fill_holes_keeps_observed_and_fills_from_nearby():
+    values = torch.zeros(16, 16, 1)
+    weight = torch.zeros(16, 16)
+    values[2, 3] = 5.0
+    weight[2, 3] = 1.0
+    values[12, 12] = -1.0
+    weight[12, 12] = 1.0
+    out = fill_holes(values, weight)
+    assert out[2, 3, 0] == 5 and out[12, 12, 0] == -1
+    assert out[1, 2, 0] == 5 and out[13, 13, 0] == -1  # holes take their neighbourhood
+    assert torch.isfinite(out).all()
+
+
+def test_vertex_normals_of_a_tetrahedron_point_outwards():
+    verts = torch.tensor([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    faces = torch.tensor([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], dtype=torch.int32)
+    n = vertex_normals(verts, faces)
+    centre = verts.mean(0)
+    assert ((verts - centre) * n).sum(-1).gt(0).all()
+    assert torch.allclose(n.norm(dim=-1), torch.ones(4))
+
+
+def test_error_driven_sampling_follows_the_error(head):
+    surface = UvSurface(head.uv_coords, head.uv_faces)
+    rng = np.random.default_rng(0)
+    on_atlas = surface.uniform(4000, rng)
+    acc = ErrorAccumulator(16)
+    hot = on_atlas[(on_atlas[:, 0] < 0.5) & (on_atlas[:, 1] > 0.5)]
+    acc.add(torch.from_numpy(on_atlas), torch.full((len(on_atlas),), 0.01))
+    acc.add(torch.from_numpy(hot), torch.full((len(hot),), 10.0))
+    drawn = acc.sample(500, surface, rng)
+    assert 0 < len(drawn) <= 500
+    inside = (drawn[:, 0] < 0.5) & (drawn[:, 1] > 0.5)
+    assert inside.mean() > 0.9
+    face, _ = surface.locate(drawn)
+    assert (face >= 0).all()
+    acc.reset()
+    assert len(acc.sample(10, surface, rng)) == 0  # no error, nothing drawn
+
+
+def test_nearest_pixel_charges_misses_to_the_closest_covered_pixel():
+    covered = torch.zeros(6, 7, dtype=torch.bool)
+    covered[1, 1] = covered[4, 5] = True
+    nearest = nearest_pixel(covered).reshape(6, 7)
+    assert nearest[1, 1] == 1 * 7 + 1 and nearest[4, 5] == 4 * 7 + 5
+    assert nearest[0, 0] == 8 and nearest[5, 6] == 33
