@@ -70,7 +70,8 @@ def run(quick: bool) -> dict:
     torch_threads = torch.get_num_threads()
     torch.set_num_threads(1)  # as the trainer runs (see urhead.train.command)
     try:
-        subject = load_subject(synthesize(ROOT / ".cache" / "quality_subject", SUBJECT))
+        subject_dir = synthesize(ROOT / ".cache" / "quality_subject", SUBJECT, progress=False)
+        subject = load_subject(subject_dir)
         head = procedural_head(0)
         iterations = 300 if quick else 800
         base = replace(
