@@ -16,12 +16,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import time
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import torch
+from tqdm.contrib.logging import logging_redirect_tqdm
 
 from urhead.config import FIT_PRESETS, FitConfig
 from urhead.data import load_subject
@@ -54,10 +56,9 @@ def main() -> None:
     config = replace(FitConfig(), **FIT_PRESETS[args.preset])
     if args.iterations is not None:
         config = replace(config, iterations=args.iterations)
-    import logging
-
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    result = Trainer(subject, procedural_head(0), config, args.out).run(resume=args.resume)
+    with logging_redirect_tqdm():  # log lines above the progress bar, not through it
+        result = Trainer(subject, procedural_head(0), config, args.out).run(resume=args.resume)
     write_test_strip(result.avatar, subject, args.out / "test_frames.png")
     metrics = dict(result.metrics, total_seconds=round(time.perf_counter() - start, 1))
     truth = subject_dir / "synthetic_ground_truth.npz"

@@ -33,7 +33,6 @@ TINY = SynthConfig(
 SMALL_FIT = FitConfig(
     iterations=40,
     uv_resolution=64,
-    image_resolution=64,
     initial_gaussians=300,
     max_gaussians=450,
     sample_every=10,

@@ -83,7 +83,6 @@ class FitConfig:
     iterations: int = option(50_000, "training iterations (paper: 50k)")
     uv_resolution: int = option(2048, "side of every UV map (paper: 2048)")
     sh_degree: int = option(3, "spherical-harmonics degree of the colour map, 0-3 (paper: 3)")
-    image_resolution: int = option(512, "training/evaluation image side (paper: 512)")
     initial_gaussians: int = option(
         10_000, "Gaussians sampled uniformly over the UV surface at the start (ours)"
     )
@@ -150,7 +149,6 @@ class FitConfig:
             ("iterations", self.iterations >= 1),
             ("uv_resolution", 16 <= self.uv_resolution <= 8192),
             ("sh_degree", 0 <= self.sh_degree <= 3),
-            ("image_resolution", 16 <= self.image_resolution <= 8192),
             ("max_gaussians", self.max_gaussians >= self.initial_gaussians >= 0),
             ("sample_every", self.sample_every >= 1),
             ("sample_cap", self.sample_cap >= 0),

@@ -62,9 +62,12 @@ def run(args: argparse.Namespace) -> int:
     head = load_head(args.head) if args.head is not None else procedural_head(0)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     configure_threads()
-    result = Trainer(subject, head, config, args.out, progress=not args.quiet).run(
-        resume=args.resume
-    )
+    from tqdm.contrib.logging import logging_redirect_tqdm
+
+    with logging_redirect_tqdm():  # log lines above the progress bar, not through it
+        result = Trainer(subject, head, config, args.out, progress=not args.quiet).run(
+            resume=args.resume
+        )
     m = result.metrics
     print(
         f"held-out PSNR {m['psnr']:.2f} dB (mesh only {m['psnr_mesh_only']:.2f}), "
