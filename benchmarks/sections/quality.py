@@ -136,13 +136,15 @@ def render(results: dict, figures: Path) -> str:
         [
             "no normal maps (normal loss off)",
             f"{saved['no normal loss'][0]:+.0f} ms/iteration",
-            "no normal image is read or decoded; the rendered-normal pass is skipped",
+            "no rendered normals, no normal loss (here simulated by switching the loss off; "
+            "the subject's normal images were still decoded)",
         ],
         [
             "SH degree 0 instead of 3",
             f"{saved['SH 0'][0]:+.0f} ms/iteration",
             f"maps + Adam state {base['maps_and_adam_mb']:.0f} → "
-            f"{saved['SH 0'][1]:.0f} MB (20 instead of 56 channels at the same resolution)",
+            f"{saved['SH 0'][1]:.0f} MB ({MapLayout(0).channels} instead of "
+            f"{MapLayout(3).channels} channels at the same resolution)",
         ],
         [
             "mesh only (no Gaussians)",
