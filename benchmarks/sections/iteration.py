@@ -4,7 +4,8 @@ SH degree 3, 24k Gaussians), forward + backward, against the DESIGN.md budget.
 The whole iteration is :meth:`Trainer.step` itself (render, loss, backward, sparse Adam on
 maps and FLAME rows, UV error accumulation). Each stage is also timed alone, forward and
 backward, from detached inputs with a random upstream gradient, with the avatar's own stage
-methods; "everything else" is the whole minus the stages (autograd bookkeeping, the loss's
+methods and, as in the trainer, its map lookups gathered into one sparse gradient built
+within the stage; "everything else" is the whole minus the stages (autograd bookkeeping, the loss's
 small terms, the FLAME-row Adam, error accumulation, Python).
 """
 
@@ -19,6 +20,7 @@ import torch
 from sections.common import ms, save, table
 from sections.scene import paper_scene
 from urhead.losses import l1, ssim
+from urhead.ops import TextureGather
 
 TITLE = "Whole training iteration at the paper's settings"
 
@@ -69,21 +71,29 @@ def stage_functions(trainer, state):
     g_verts = torch.randn(verts.shape, generator=g) * 1e-3
     g_image = torch.randn(h, w, 3, generator=g) * 1e-3
 
+    # As in Trainer.step, map lookups record their gradient in a TextureGather; each
+    # stage includes building its share of the sparse map gradient.
     def skinning():
+        gather = TextureGather(avatar.maps)
         v, r = avatar.skin(avatar.frame(frame.timestep))
-        d, _ = avatar.displace(v, r)
+        d, _ = avatar.displace(v, r, gather)
         d.backward(g_verts)
+        gather.gradient()
         clear()
 
     def mesh_branch():
-        m = avatar.shade_mesh(_leaf(displaced), offsets, rotations, camera, False)
+        gather = TextureGather(avatar.maps)
+        m = avatar.shade_mesh(_leaf(displaced), offsets, rotations, camera, False, gather)
         m.image.backward(g_image)
+        gather.gradient()
         clear()
 
     def lift_stage():
-        out = avatar.lift_gaussians(_leaf(verts), rotations, camera)
+        gather = TextureGather(avatar.maps)
+        out = avatar.lift_gaussians(_leaf(verts), rotations, camera, gather)
         tensors = [out.means, out.quats, out.scales, out.opacities, out.colors]
         torch.autograd.backward(tensors, [torch.ones_like(t) * 1e-3 for t in tensors])
+        gather.gradient()
         clear()
 
     leaves = lift._replace(
@@ -104,9 +114,10 @@ def stage_functions(trainer, state):
         loss.backward()
 
     # A real iteration's sparse gradient for the optimiser stage.
-    out = avatar.render(params, camera)
+    gather = TextureGather(avatar.maps)
+    out = avatar.render(params, camera, gather=gather)
     (out.image - frame.image).abs().mean().backward()
-    map_grad = avatar.maps.grad
+    map_grad = gather.gradient()
     clear()
 
     def adam():
