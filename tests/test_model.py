@@ -188,8 +188,11 @@ def test_fill_holes_keeps_observed_and_fills_from_nearby():
     weight[12, 12] = 1.0
     out = fill_holes(values, weight)
     assert out[2, 3, 0] == 5 and out[12, 12, 0] == -1
-    assert out[1, 2, 0] == 5 and out[13, 13, 0] == -1  # holes take their neighbourhood
-    assert torch.isfinite(out).all()
+    # holes take their neighbourhood, blending smoothly (no blocks) in between
+    assert out[1, 2, 0] > 4.5 and out[13, 13, 0] < -0.5
+    assert out.min() >= -1 and out.max() <= 5  # a convex blend of what was observed
+    steps = (out[1:] - out[:-1]).abs().max()
+    assert steps < 1.0
 
 
 def test_vertex_normals_of_a_tetrahedron_point_outwards():

@@ -57,7 +57,9 @@ def fill_holes(values: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
     coarse_w = F.avg_pool2d(w, 2, ceil_mode=True)
     coarse = coarse_v / coarse_w.clamp_min(1e-12)
     filled = fill_holes(coarse[0].permute(1, 2, 0), coarse_w[0, 0])
-    up = F.interpolate(filled.permute(2, 0, 1)[None], size=(h, wd), mode="nearest")
+    up = F.interpolate(
+        filled.permute(2, 0, 1)[None], size=(h, wd), mode="bilinear", align_corners=False
+    )
     return torch.where(observed[..., None], values, up[0].permute(1, 2, 0))
 
 
