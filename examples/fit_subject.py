@@ -64,7 +64,9 @@ def main() -> None:
     truth = subject_dir / "synthetic_ground_truth.npz"
     if truth.is_file():
         metrics["psnr_true_flame"] = psnr_with_true_flame(result.avatar, subject, truth)
-    (args.out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    tmp = args.out / "metrics.json.tmp"
+    tmp.write_text(json.dumps(metrics, indent=2))
+    tmp.replace(args.out / "metrics.json")
     print(json.dumps(metrics, indent=2))
     print(f"wrote {args.out}/avatar, metrics.json, psnr_vs_time.png, test_frames.png")
 
