@@ -31,10 +31,10 @@ from urhead.ops import (
     normal_to_quat,
     rasterize,
     rasterize_gaussians,
+    sh_shade,
     texture,
 )
 from urhead.ops.texture import TextureGather
-from urhead.sh import SH_C0, sh_basis
 
 POSE_SIZE = 15
 """FLAME pose: global, neck, jaw, left eye, right eye axis-angles."""
@@ -251,11 +251,12 @@ class Avatar:
         h, w = camera.height, camera.width
         pixels = (raster.tri_id.reshape(-1) >= 0).nonzero()[:, 0]
         uv = uv_image.reshape(-1, 2)[pixels]
-        samples = layout.split(self.lookup(uv.contiguous(), gather))
+        rows = self.lookup(uv.contiguous(), gather)
+        samples = layout.split(rows)
         rot_image = interpolate(rotations.reshape(-1, 9), raster, t["faces"])
         pixel_rot = rot_image.reshape(-1, 9)[pixels].reshape(-1, 3, 3)
         rays = self._pixel_rays(camera)[pixels]
-        rgb = self._sh_color(samples.color, rays, pixel_rot.detach())
+        rgb = self._sh_color(rows, rays, pixel_rot.detach())
         background = torch.cat([self.background, self.background.new_zeros(1)])
         flat = background.expand(h * w, 4).clone()
         flat = flat.index_put((pixels,), torch.cat([rgb, rgb.new_ones(rgb.shape[0], 1)], 1))
@@ -285,7 +286,8 @@ class Avatar:
         bary = self.gaussian_bary[:, :, None]
         surface = (verts[face_verts] * bary).sum(1)
         frames = (rotations[face_verts] * bary[..., None]).sum(1)
-        samples = layout.split(self.lookup(self.gaussian_uv, gather))
+        rows = self.lookup(self.gaussian_uv, gather)
+        samples = layout.split(rows)
         normal = _rotate_normalize(frames, samples.normal)
         means = surface + samples.displacement[:, None] * normal
         sh = samples.color.reshape(-1, layout.sh_coeffs, 3)
@@ -296,7 +298,7 @@ class Avatar:
             quats=normal_to_quat(normal),
             scales=samples.scale.exp(),
             opacities=torch.sigmoid(samples.opacity),
-            colors=self._sh_color(samples.color, rays, frames.detach()),
+            colors=self._sh_color(rows, rays, frames.detach()),
             sh=sh,
             frames=frames.detach(),
         )
@@ -316,21 +318,15 @@ class Avatar:
         )
         return GaussianRender(out.image, out.transmittance, out.radii, lift)
 
-    def _sh_color(self, coeffs: torch.Tensor, rays: torch.Tensor, rotation: torch.Tensor):
-        """(P, 3) colours from (P, 3K) SH coefficients seen along world rays (P, 3), with
-        the view direction taken in the surface's rest frame (``rotation`` (P, 3, 3) the
-        skinning rotation, undone): view-dependent colour then follows the surface as the
-        head moves, and with a fixed camera it can absorb shading that changes with the
-        head's rotation. Degree 0 needs no direction."""
-        k = self.layout.sh_coeffs
-        if k == 1:
-            return (coeffs * SH_C0 + 0.5).clamp_min(0.0)
+    def _sh_color(self, rows: torch.Tensor, rays: torch.Tensor, rotation: torch.Tensor):
+        """(P, 3) colours from map-sample rows (P, channels) seen along world rays
+        (P, 3), with the view direction taken in the surface's rest frame (``rotation``
+        (P, 3, 3) the skinning rotation, undone): view-dependent colour then follows the
+        surface as the head moves, and with a fixed camera it can absorb shading that
+        changes with the head's rotation."""
         local = (rays[:, :, None] * rotation).sum(1)  # Rᵀ·ray
         local = local / local.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        basis = sh_basis(local, self.layout.sh_degree)
-        # Elementwise: torch's batched 1×K·K×3 matmuls are far slower on the CPU.
-        rgb = (basis[:, :, None] * coeffs.reshape(-1, k, 3)).sum(1)
-        return (rgb + 0.5).clamp_min(0.0)
+        return sh_shade(rows, local, self.layout.sh_degree)
 
     def _pixel_rays(self, camera: Camera) -> torch.Tensor:
         """(H·W, 3) unit world directions of the pixels' rays (from the camera centre to

@@ -6,6 +6,7 @@ from urhead.ops.antialias import antialias, antialias_topology
 from urhead.ops.interpolate import interpolate
 from urhead.ops.lbs import LbsOutput, lbs
 from urhead.ops.rasterize import RasterOutput, UvRasterOutput, rasterize, rasterize_uv
+from urhead.ops.shading import sh_shade
 from urhead.ops.splat import SplatOutput, normal_to_quat, rasterize_gaussians
 from urhead.ops.ssim import l1_loss, ssim_loss
 from urhead.ops.texture import TextureGather, texture
@@ -25,6 +26,7 @@ __all__ = [
     "rasterize",
     "rasterize_gaussians",
     "rasterize_uv",
+    "sh_shade",
     "ssim_loss",
     "texture",
 ]

@@ -590,3 +590,11 @@ def ssim_loss(image, target, mask=None):
 def l1_loss(image, target, mask=None):
     """Reference of :func:`urhead.ops.l1_loss`."""
     return _masked_pixel_mean((image - target).abs(), mask)
+
+
+def sh_shade(coeffs, dirs, degree):
+    """Reference of :func:`urhead.ops.sh_shade`."""
+    k = (degree + 1) ** 2
+    sh = coeffs[:, : 3 * k].reshape(-1, k, 3)
+    basis = sh_basis(dirs, degree)
+    return ((basis[:, :, None] * sh).sum(1) + 0.5).clamp_min(0.0)

@@ -15,6 +15,7 @@ pub mod parallel;
 pub mod raster;
 pub mod raytrace;
 pub mod real;
+pub mod shading;
 pub mod splat;
 pub mod ssim;
 pub mod testing;

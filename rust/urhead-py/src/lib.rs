@@ -10,6 +10,7 @@ mod lbs;
 mod pool;
 mod raster;
 mod raytrace;
+mod shading;
 mod splat;
 mod ssim;
 
@@ -44,6 +45,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(splat::splat_rasterize_backward_f64, m)?)?;
     m.add_function(wrap_pyfunction!(raytrace::raytrace_render, m)?)?;
     m.add_class::<raytrace::PyTriangleBvh>()?;
+    shading::register(m)?;
     ssim::register(m)?;
     Ok(())
 }

@@ -1,0 +1,62 @@
+"""Batched spherical-harmonics colour along fixed view directions, Rust forward and
+adjoint (to the coefficients only)."""
+
+from __future__ import annotations
+
+import torch
+
+from urhead._threads import num_threads
+from urhead.errors import DTypeError, InvalidArgumentError
+from urhead.ops._bridge import check_shape, float_dtype, grad_to_numpy, kernel, to_numpy
+
+
+class _ShShade(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, coeffs, dirs, degree):
+        dtype = coeffs.dtype
+        rgb = kernel("sh_shade_forward", dtype)(
+            to_numpy("coeffs", coeffs, dtype), to_numpy("dirs", dirs, dtype), degree, num_threads()
+        )
+        ctx.set_materialize_grads(False)
+        ctx.save_for_backward(coeffs, dirs)
+        ctx.degree = degree
+        return torch.from_numpy(rgb)
+
+    @staticmethod
+    def backward(ctx, v_rgb):
+        if v_rgb is None or not ctx.needs_input_grad[0]:
+            return None, None, None
+        coeffs, dirs = ctx.saved_tensors
+        dtype = coeffs.dtype
+        v_coeffs = kernel("sh_shade_backward", dtype)(
+            coeffs.detach().numpy(),
+            dirs.detach().numpy(),
+            ctx.degree,
+            grad_to_numpy("v_rgb", v_rgb, dtype),
+            num_threads(),
+        )
+        return torch.from_numpy(v_coeffs), None, None
+
+
+def sh_shade(coeffs: torch.Tensor, dirs: torch.Tensor, degree: int) -> torch.Tensor:
+    """Colours ``max(Σ_k b_k(dir)·c_k + 0.5, 0)`` of many samples (3DGS SH constants).
+
+    Args:
+        coeffs: (P, S) rows whose first 3·(degree + 1)² entries are the SH coefficients,
+            coefficient-major (entry 3k + c is coefficient k of colour c); the rest of a
+            row is ignored, so a packed table of map samples needs no slicing or copy.
+        dirs: (P, 3) unit view directions; constants (no gradient flows to them).
+        degree: 0–3.
+
+    Returns:
+        (P, 3) colours. Gradient: to ``coeffs`` (zero past the colour entries and where a
+        channel is clamped at 0). A NaN coefficient gives a NaN colour.
+    """
+    dtype = float_dtype("coeffs", coeffs)
+    check_shape("coeffs", coeffs, 2, None, "(P, S)")
+    if dirs.dtype != dtype:
+        raise DTypeError(f"dirs must have the dtype of coeffs ({dtype}), got {dirs.dtype}")
+    check_shape("dirs", dirs, 2, 3, "(P, 3)")
+    if isinstance(degree, bool) or not isinstance(degree, int) or not 0 <= degree <= 3:
+        raise InvalidArgumentError(f"degree must be an int in [0, 3], got {degree!r}")
+    return _ShShade.apply(coeffs.contiguous(), dirs.detach().contiguous(), degree)

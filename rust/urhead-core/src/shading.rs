@@ -1,0 +1,197 @@
+//! Batched spherical-harmonics colour for many surface samples seen along known view
+//! directions: `rgb = max(Σ_k b_k(dir)·c_k + 0.5, 0)` (3DGS constants, [`crate::splat::sh`]),
+//! forward and the adjoint to the coefficients. The directions are constants (no gradient):
+//! the mesh branch and the Gaussian lift use fixed camera rays.
+//!
+//! Coefficients are read from rows of a wider table (`stride` channels per sample, the
+//! colour in the first `3·(degree+1)²`), so a view of the packed UV-map samples needs no
+//! copy; the gradient is returned in the same `stride` layout, zero outside the colour.
+
+use rayon::prelude::*;
+
+use crate::error::{check_finite, check_len, Error, Result};
+use crate::splat::sh::{num_sh_coeffs, sh_basis};
+use crate::Real;
+
+/// Samples per rayon task: enough work to amortise the task, fixed so any thread count
+/// gives the same partition (each sample is independent anyway).
+const CHUNK: usize = 2048;
+
+/// The arguments shared by the forward and the backward.
+#[derive(Clone, Copy)]
+pub struct ShadingInputs<'a, T> {
+    /// (P, stride) rows whose first 3·(degree+1)² entries are the coefficients (k-major).
+    pub coeffs: &'a [T],
+    /// (P, 3) unit view directions.
+    pub dirs: &'a [T],
+    pub stride: usize,
+    pub degree: usize,
+}
+
+impl<T: Real> ShadingInputs<'_, T> {
+    fn validate(&self) -> Result<usize> {
+        if self.degree > 3 {
+            return Err(Error::Invalid {
+                arg: "degree",
+                reason: format!("must be 0, 1, 2 or 3, got {}", self.degree),
+            });
+        }
+        let width = 3 * num_sh_coeffs(self.degree);
+        if self.stride < width {
+            return Err(Error::Invalid {
+                arg: "coeffs",
+                reason: format!(
+                    "rows of {} channels cannot hold {width} coefficients",
+                    self.stride
+                ),
+            });
+        }
+        let count = self.dirs.len() / 3;
+        check_len("dirs", self.dirs, count * 3, "(P, 3)")?;
+        check_len("coeffs", self.coeffs, count * self.stride, "(P, stride)")?;
+        check_finite("dirs", self.dirs)?;
+        Ok(count)
+    }
+
+    fn raw(&self, i: usize, b: &[T; 16]) -> [T; 3] {
+        let row = &self.coeffs[i * self.stride..];
+        let mut rgb = [T::c(0.5); 3];
+        for (k, bk) in b.iter().enumerate().take(num_sh_coeffs(self.degree)) {
+            for (ch, v) in rgb.iter_mut().enumerate() {
+                *v += *bk * row[k * 3 + ch];
+            }
+        }
+        rgb
+    }
+
+    fn dir(&self, i: usize) -> [T; 3] {
+        [self.dirs[3 * i], self.dirs[3 * i + 1], self.dirs[3 * i + 2]]
+    }
+}
+
+/// (P, 3) colours.
+pub fn shade_forward<T: Real>(inputs: &ShadingInputs<'_, T>) -> Result<Vec<T>> {
+    let count = inputs.validate()?;
+    let mut out = vec![T::zero(); count * 3];
+    out.par_chunks_mut(CHUNK * 3).enumerate().for_each(|(c, block)| {
+        for (j, rgb) in block.chunks_exact_mut(3).enumerate() {
+            let i = c * CHUNK + j;
+            let (b, _) = sh_basis(inputs.degree, inputs.dir(i), false);
+            let raw = inputs.raw(i, &b);
+            for ch in 0..3 {
+                // NaN-safe clamp: a NaN coefficient gives NaN, not 0.
+                rgb[ch] = if raw[ch] < T::zero() { T::zero() } else { raw[ch] };
+            }
+        }
+    });
+    Ok(out)
+}
+
+/// ∂L/∂coeffs (P, stride) from ∂L/∂rgb (P, 3); channels clamped at 0 pass no gradient,
+/// entries past the colour are zero.
+pub fn shade_backward<T: Real>(inputs: &ShadingInputs<'_, T>, v_rgb: &[T]) -> Result<Vec<T>> {
+    let count = inputs.validate()?;
+    check_len("v_rgb", v_rgb, count * 3, "(P, 3)")?;
+    let stride = inputs.stride;
+    let n = num_sh_coeffs(inputs.degree);
+    let mut v_coeffs = vec![T::zero(); count * stride];
+    v_coeffs
+        .par_chunks_mut(CHUNK * stride)
+        .enumerate()
+        .for_each(|(c, block)| {
+            for (j, row) in block.chunks_exact_mut(stride).enumerate() {
+                let i = c * CHUNK + j;
+                let (b, _) = sh_basis(inputs.degree, inputs.dir(i), false);
+                let raw = inputs.raw(i, &b);
+                let v = [0, 1, 2].map(|ch| {
+                    if raw[ch] >= T::zero() {
+                        v_rgb[3 * i + ch]
+                    } else {
+                        T::zero()
+                    }
+                });
+                for k in 0..n {
+                    for ch in 0..3 {
+                        row[k * 3 + ch] = b[k] * v[ch];
+                    }
+                }
+            }
+        });
+    Ok(v_coeffs)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::splat::sh::{sh_to_rgb, sh_to_rgb_backward};
+    use crate::testing::Rng;
+
+    fn case(count: usize, stride: usize) -> (Vec<f64>, Vec<f64>) {
+        let mut rng = Rng::new(7);
+        let coeffs: Vec<f64> = (0..count * stride).map(|_| rng.uniform(-0.8, 0.8)).collect();
+        let mut dirs = Vec::new();
+        for _ in 0..count {
+            let d = [
+                rng.uniform(-1.0, 1.0),
+                rng.uniform(-1.0, 1.0),
+                rng.uniform(-1.0, 1.0),
+            ];
+            let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+            dirs.extend(d.map(|x| x / len));
+        }
+        (coeffs, dirs)
+    }
+
+    #[test]
+    fn matches_the_per_sample_functions() {
+        for degree in 0..=3 {
+            let stride = 3 * num_sh_coeffs(degree) + 5;
+            let (coeffs, dirs) = case(5000, stride);
+            let inputs = ShadingInputs {
+                coeffs: &coeffs,
+                dirs: &dirs,
+                stride,
+                degree,
+            };
+            let rgb = shade_forward(&inputs).unwrap();
+            let mut rng = Rng::new(3);
+            let v_rgb: Vec<f64> = (0..rgb.len()).map(|_| rng.uniform(-1.0, 1.0)).collect();
+            let v = shade_backward(&inputs, &v_rgb).unwrap();
+            for i in 0..5000 {
+                let d = [dirs[3 * i], dirs[3 * i + 1], dirs[3 * i + 2]];
+                let row = &coeffs[i * stride..(i + 1) * stride];
+                assert_eq!(
+                    sh_to_rgb(degree, d, row),
+                    [rgb[3 * i], rgb[3 * i + 1], rgb[3 * i + 2]]
+                );
+                let mut expected = vec![0.0; stride];
+                let g = [v_rgb[3 * i], v_rgb[3 * i + 1], v_rgb[3 * i + 2]];
+                sh_to_rgb_backward(degree, d, row, g, Some(&mut expected));
+                assert_eq!(&v[i * stride..(i + 1) * stride], &expected[..]);
+            }
+        }
+    }
+
+    #[test]
+    fn rejects_bad_arguments() {
+        let (coeffs, dirs) = case(4, 48);
+        let ok = ShadingInputs {
+            coeffs: &coeffs,
+            dirs: &dirs,
+            stride: 48,
+            degree: 3,
+        };
+        assert!(shade_forward(&ok).is_ok());
+        assert!(shade_forward(&ShadingInputs { degree: 4, ..ok }).is_err());
+        assert!(shade_forward(&ShadingInputs { stride: 47, ..ok }).is_err());
+        assert!(shade_forward(&ShadingInputs {
+            coeffs: &coeffs[1..],
+            ..ok
+        })
+        .is_err());
+        let mut bad = dirs.clone();
+        bad[4] = f64::NAN;
+        assert!(shade_forward(&ShadingInputs { dirs: &bad, ..ok }).is_err());
+        assert!(shade_backward(&ok, &[0.0; 11]).is_err());
+    }
+}
