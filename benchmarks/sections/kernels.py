@@ -110,8 +110,30 @@ def ssim_rows(quick: bool) -> list[dict]:
 
 def run(quick: bool) -> dict:
     rows = lbs_rows(quick) + mesh_rows(quick) + splat_rows(quick)
-    rows += adam_rows(quick) + ssim_rows(quick)
+    rows += adam_rows(quick) + ssim_rows(quick) + shading_rows(quick)
     return {"rows": rows, "urhead_version": getattr(urhead, "__version__", "unknown")}
+
+
+def shading_rows(quick: bool) -> list[dict]:
+    """SH shading of an iteration's covered pixels (rows of the packed 56-channel samples,
+    degree 3) vs the plain-torch reference."""
+    from urhead import ops
+    from urhead.ops import _reference
+
+    g = torch.Generator().manual_seed(0)
+    rows = torch.rand(90_000, 56, generator=g) - 0.5
+    dirs = torch.nn.functional.normalize(torch.randn(90_000, 3, generator=g), dim=-1)
+    weights = torch.rand(90_000, 3, generator=g)
+
+    def fwd_bwd(fn):
+        x = rows.clone().requires_grad_(True)
+        (fn(x, dirs, 3) * weights).sum().backward()
+
+    repeats = 5 if quick else 15
+    ours = median_ms(lambda: fwd_bwd(ops.sh_shade), repeats)
+    ref = median_ms(lambda: fwd_bwd(_reference.sh_shade), repeats)
+    note = "reference: plain-torch basis × coefficients, autograd backward"
+    return [_row("sh_shade", "90k samples × 56 channels, degree 3", ours, ref, note)]
 
 
 def render(results: dict, figures: Path) -> str:
