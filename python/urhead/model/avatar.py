@@ -40,6 +40,20 @@ POSE_SIZE = 15
 """FLAME pose: global, neck, jaw, left eye, right eye axis-angles."""
 
 
+def flame_rows(flame: dict, count: int, num_expr: int) -> np.ndarray:
+    """(count, num_expr + 18) float32 rows ``expr | pose (15) | translation`` — the layout of
+    :attr:`Avatar.frame_params` — from FLAME arrays (FORMATS.md keys) holding ``count``
+    frames; the expression is truncated or zero-padded to ``num_expr``."""
+    expr = np.zeros((count, num_expr), np.float32)
+    given = np.asarray(flame["expr"], np.float32).reshape(count, -1)[:, :num_expr]
+    expr[:, : given.shape[1]] = given
+    rest = [
+        np.asarray(flame[k], np.float32).reshape(count, -1)
+        for k in ("rotation", "neck_pose", "jaw_pose", "eyes_pose", "translation")
+    ]
+    return np.concatenate([expr, *rest], 1)
+
+
 class FlameParams(NamedTuple):
     """One frame's FLAME parameters (1-D tensors)."""
 
@@ -164,24 +178,14 @@ class Avatar:
     def params_from_flame(self, flame: dict) -> FlameParams:
         """FLAME parameters of a dataset frame (FORMATS.md keys) as :class:`FlameParams`,
         expression truncated or zero-padded to this avatar's count."""
-        expr = np.zeros(self.num_expr, np.float32)
-        src = np.asarray(flame["expr"], np.float32).reshape(-1)[: self.num_expr]
-        expr[: src.size] = src
-        pose = np.concatenate(
-            [
-                np.asarray(flame[k], np.float32).reshape(-1)
-                for k in ("rotation", "neck_pose", "jaw_pose", "eyes_pose")
-            ]
-        )
-        transl = np.asarray(flame["translation"], np.float32).reshape(-1)
-        return FlameParams(*(torch.from_numpy(a) for a in (expr, pose, transl)))
+        return self.split_params(torch.from_numpy(flame_rows(flame, 1, self.num_expr)[0]))
 
     # --- rendering -------------------------------------------------------------------
 
     def tables(self) -> dict:
         """Constant tensors derived from the head and identity, built once."""
         if self._tables is None:
-            self._tables = _build_tables(self)
+            self._tables = head_tables(self.head, self.shape, self.static_offset, self.num_expr)
         return self._tables
 
     def render(
@@ -358,17 +362,18 @@ def _pixel_rays(camera: Camera) -> torch.Tensor:
     return (world / world.norm(dim=-1, keepdim=True)).float().contiguous()
 
 
-def _build_tables(avatar: Avatar) -> dict:
-    head = avatar.head
-    e = avatar.num_expr
-    s = avatar.shape.shape[0]
-    full = head.lbs_tables(torch.float32, num_shape=s, num_expr=e)
+def head_tables(
+    head: HeadModel, shape: torch.Tensor, static_offset: torch.Tensor | None, num_expr: int
+) -> dict:
+    """The constant tensors rendering needs: skinning tables with the identity ``shape``
+    (and VHAP's ``static_offset``) baked into the template, so the skinning kernel carries
+    only the ``num_expr`` expression columns; faces, UVs, antialias topology, Laplacian."""
+    s = shape.shape[0]
+    full = head.lbs_tables(torch.float32, num_shape=s, num_expr=num_expr)
     shapedirs = full["shapedirs"]
-    # The identity is fixed: bake it (and VHAP's static offset) into the template, so the
-    # skinning kernel only carries the expression columns.
-    template = full["v_template"] + (shapedirs[:, :, :s] @ avatar.shape)
-    if avatar.static_offset is not None:
-        template = template + avatar.static_offset
+    template = full["v_template"] + (shapedirs[:, :, :s] @ shape)
+    if static_offset is not None:
+        template = template + static_offset
     lbs_tables = dict(full)
     lbs_tables["v_template"] = template.contiguous()
     lbs_tables["shapedirs"] = shapedirs[:, :, s:].contiguous()

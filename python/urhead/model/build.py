@@ -10,7 +10,7 @@ import torch
 
 from urhead.errors import InvalidArgumentError
 from urhead.head.model import HeadModel
-from urhead.model.avatar import Avatar
+from urhead.model.avatar import Avatar, flame_rows
 from urhead.model.init import (
     initial_maps,
     project_colors,
@@ -25,16 +25,8 @@ from urhead.ops import lbs
 
 def frame_table(frames, num_expr: int) -> tuple[torch.Tensor, torch.Tensor]:
     """``(timesteps (T,), params (T, E + 18))`` from a split's tracked FLAME parameters."""
-    flame = frames.flame_params()
-    expr = np.zeros((len(frames), num_expr), np.float32)
-    src = flame["expr"].reshape(len(frames), -1)[:, :num_expr]
-    expr[:, : src.shape[1]] = src
-    parts = [expr] + [
-        flame[k].reshape(len(frames), -1)
-        for k in ("rotation", "neck_pose", "jaw_pose", "eyes_pose", "translation")
-    ]
-    params = torch.from_numpy(np.concatenate(parts, 1).astype(np.float32))
-    return torch.tensor(frames.timesteps, dtype=torch.int64), params.contiguous()
+    params = flame_rows(frames.flame_params(), len(frames), num_expr)
+    return torch.tensor(frames.timesteps, dtype=torch.int64), torch.from_numpy(params)
 
 
 def build_avatar(

@@ -9,18 +9,34 @@ from urhead.errors import DTypeError
 from urhead.ops._bridge import check_shape, float_dtype, from_numpy, grad_to_numpy, kernel, to_numpy
 
 
+def _sample(tex: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """The Rust bilinear lookup: (Ht, Wt, C) at (..., 2) → (..., C)."""
+    dtype = tex.dtype
+    flat_uv = uv.reshape(-1, 2) if uv.is_contiguous() else uv
+    out = kernel("texture_forward", dtype)(
+        to_numpy("tex", tex, dtype), to_numpy("uv", flat_uv, dtype), num_threads()
+    )
+    return torch.from_numpy(out).reshape(*uv.shape[:-1], tex.shape[-1])
+
+
+def _check_lookup(tex: torch.Tensor, uv: torch.Tensor) -> None:
+    dtype = float_dtype("tex", tex)
+    check_shape("tex", tex, 3, None, "(Ht, Wt, C)")
+    float_dtype("uv", uv)
+    if uv.dtype != dtype:
+        raise DTypeError(f"uv must have the dtype of tex ({dtype}), got {uv.dtype}")
+    if uv.dim() < 1 or uv.shape[-1] != 2:
+        check_shape("uv", uv, max(uv.dim(), 1), 2, "(..., 2)")
+
+
 class _Texture(torch.autograd.Function):
     @staticmethod
     def forward(ctx, tex, uv, sparse_grad):
-        dtype = tex.dtype
-        flat_uv = uv.reshape(-1, 2) if uv.is_contiguous() else uv
-        out = kernel("texture_forward", dtype)(
-            to_numpy("tex", tex, dtype), to_numpy("uv", flat_uv, dtype), num_threads()
-        )
+        out = _sample(tex, uv)
         ctx.set_materialize_grads(False)
         ctx.save_for_backward(tex, uv)
         ctx.sparse_grad = sparse_grad
-        return torch.from_numpy(out).reshape(*uv.shape[:-1], tex.shape[-1])
+        return out
 
     @staticmethod
     def backward(ctx, v_out):
@@ -83,13 +99,7 @@ def texture(tex: torch.Tensor, uv: torch.Tensor, *, sparse_grad: bool = True) ->
     ``p.grad = torch.sparse_coo_tensor(g._indices(), g._values(), g.shape,
     is_coalesced=True)`` with ``g = p.grad``.
     """
-    dtype = float_dtype("tex", tex)
-    check_shape("tex", tex, 3, None, "(Ht, Wt, C)")
-    float_dtype("uv", uv)
-    if uv.dtype != dtype:
-        raise DTypeError(f"uv must have the dtype of tex ({dtype}), got {uv.dtype}")
-    if uv.dim() < 1 or uv.shape[-1] != 2:
-        check_shape("uv", uv, max(uv.dim(), 1), 2, "(..., 2)")
+    _check_lookup(tex, uv)
     return _Texture.apply(tex, uv, sparse_grad)
 
 
@@ -100,16 +110,10 @@ class _GatheredTexture(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, uv, tex, gather):
-        dtype = tex.dtype
-        out = kernel("texture_forward", dtype)(
-            to_numpy("tex", gather.tex, dtype),
-            to_numpy("uv", uv.reshape(-1, 2), dtype),
-            num_threads(),
-        )
         ctx.set_materialize_grads(False)
         ctx.save_for_backward(uv)
         ctx.gather = gather
-        return torch.from_numpy(out).reshape(*uv.shape[:-1], tex.shape[-1])
+        return _sample(gather.tex, uv)
 
     @staticmethod
     def backward(ctx, v_out):
@@ -158,11 +162,7 @@ class TextureGather:
 
     def sample(self, uv: torch.Tensor) -> torch.Tensor:
         """(..., 2) UVs → (..., C) samples, as :func:`texture`; differentiable in ``uv``."""
-        float_dtype("uv", uv)
-        if uv.dtype != self.tex.dtype:
-            raise DTypeError(f"uv must have the dtype of tex ({self.tex.dtype}), got {uv.dtype}")
-        if uv.dim() < 1 or uv.shape[-1] != 2:
-            check_shape("uv", uv, max(uv.dim(), 1), 2, "(..., 2)")
+        _check_lookup(self.tex, uv)
         return _GatheredTexture.apply(uv.contiguous(), self.source, self)
 
     def record(self, uv: torch.Tensor, v_out: torch.Tensor) -> None:

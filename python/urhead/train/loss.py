@@ -20,7 +20,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from urhead.losses import laplacian_loss, ssim
+from urhead.losses import l1, laplacian_loss, ssim
 from urhead.model.avatar import Render
 
 
@@ -44,12 +44,12 @@ def training_loss(
     """The loss of one rendered training frame (a dataset :class:`Frame`)."""
     target = frame.image
     image = render.image
-    l1 = (image - target).abs().mean()
-    terms = {"l1": float(l1.detach())}
-    photo = l1
+    l1_full = l1(image, target)
+    terms = {"l1": float(l1_full.detach())}
+    photo = l1_full
     if render.gaussians is not None and mesh_term > 0:
-        l1_mesh = (render.mesh.image - target).abs().mean()
-        photo = (1 - mesh_term) * l1 + mesh_term * l1_mesh
+        l1_mesh = l1(render.mesh.image, target)
+        photo = (1 - mesh_term) * l1_full + mesh_term * l1_mesh
         terms["l1_mesh"] = float(l1_mesh.detach())
     total = (1 - lambda_ssim) * photo
     if lambda_ssim > 0:

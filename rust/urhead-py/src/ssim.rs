@@ -80,67 +80,29 @@ fn value_and_grad<'py, T: Element + Real>(
 }
 
 macro_rules! entry_points {
-    ($ssim:ident, $ssim_grad:ident, $l1:ident, $l1_grad:ident, $t:ty) => {
-        /// Masked mean SSIM of (H, W, C) images; mask (H, W) or None.
+    ($value:ident, $grad:ident, $kernel:ident, $kernel_grad:ident, $what:literal, $t:ty) => {
+        #[doc = concat!("Masked mean ", $what, " of (H, W, C) images; mask (H, W) or None.")]
         #[pyfunction]
-        pub fn $ssim(
+        pub fn $value(
             py: Python<'_>,
             image: Arr<'_, $t>,
             target: Arr<'_, $t>,
             mask: Option<Arr<'_, $t>>,
             num_threads: usize,
         ) -> PyResult<f64> {
-            value(py, masked_ssim::<$t>, image, target, mask, num_threads)
+            value(py, $kernel::<$t>, image, target, mask, num_threads)
         }
 
-        /// Masked mean SSIM and its (H, W, C) gradient with respect to `image`.
+        #[doc = concat!("Masked mean ", $what, " and its (H, W, C) gradient in `image`.")]
         #[pyfunction]
-        pub fn $ssim_grad<'py>(
+        pub fn $grad<'py>(
             py: Python<'py>,
             image: Arr<'py, $t>,
             target: Arr<'py, $t>,
             mask: Option<Arr<'py, $t>>,
             num_threads: usize,
         ) -> PyResult<(f64, Bound<'py, numpy::PyArrayDyn<$t>>)> {
-            value_and_grad(
-                py,
-                masked_ssim_with_grad::<$t>,
-                image,
-                target,
-                mask,
-                num_threads,
-            )
-        }
-
-        /// Masked mean absolute difference of (H, W, C) images.
-        #[pyfunction]
-        pub fn $l1(
-            py: Python<'_>,
-            image: Arr<'_, $t>,
-            target: Arr<'_, $t>,
-            mask: Option<Arr<'_, $t>>,
-            num_threads: usize,
-        ) -> PyResult<f64> {
-            value(py, masked_l1::<$t>, image, target, mask, num_threads)
-        }
-
-        /// Masked mean absolute difference and its (H, W, C) subgradient.
-        #[pyfunction]
-        pub fn $l1_grad<'py>(
-            py: Python<'py>,
-            image: Arr<'py, $t>,
-            target: Arr<'py, $t>,
-            mask: Option<Arr<'py, $t>>,
-            num_threads: usize,
-        ) -> PyResult<(f64, Bound<'py, numpy::PyArrayDyn<$t>>)> {
-            value_and_grad(
-                py,
-                masked_l1_with_grad::<$t>,
-                image,
-                target,
-                mask,
-                num_threads,
-            )
+            value_and_grad(py, $kernel_grad::<$t>, image, target, mask, num_threads)
         }
     };
 }
@@ -148,15 +110,33 @@ macro_rules! entry_points {
 entry_points!(
     masked_ssim_f32,
     masked_ssim_grad_f32,
-    masked_l1_f32,
-    masked_l1_grad_f32,
+    masked_ssim,
+    masked_ssim_with_grad,
+    "SSIM",
     f32
 );
 entry_points!(
     masked_ssim_f64,
     masked_ssim_grad_f64,
+    masked_ssim,
+    masked_ssim_with_grad,
+    "SSIM",
+    f64
+);
+entry_points!(
+    masked_l1_f32,
+    masked_l1_grad_f32,
+    masked_l1,
+    masked_l1_with_grad,
+    "absolute difference",
+    f32
+);
+entry_points!(
     masked_l1_f64,
     masked_l1_grad_f64,
+    masked_l1,
+    masked_l1_with_grad,
+    "absolute difference",
     f64
 );
 
