@@ -60,3 +60,17 @@ def test_bad_input():
     with pytest.raises(NonFiniteError, match="dirs"):
         sh_shade(coeffs, bad, 3)
     assert torch.isnan(sh_shade(torch.full((1, 48), float("nan")), dirs[:1], 3)).all()
+
+
+def test_same_bits_for_any_thread_count(monkeypatch):
+    coeffs, dirs = _case(5000, 56, torch.float32, seed=9)
+    weights = torch.rand(5000, 3, generator=torch.Generator().manual_seed(2))
+    results = []
+    for threads in ("1", "2", "4"):
+        monkeypatch.setenv("URHEAD_NUM_THREADS", threads)
+        x = coeffs.clone().requires_grad_(True)
+        rgb = sh_shade(x, dirs, 3)
+        (rgb * weights).sum().backward()
+        results.append((rgb, x.grad))
+    for rgb, grad in results[1:]:
+        assert torch.equal(rgb, results[0][0]) and torch.equal(grad, results[0][1])
