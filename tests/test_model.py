@@ -228,3 +228,81 @@ def test_nearest_pixel_charges_misses_to_the_closest_covered_pixel():
     nearest = nearest_pixel(covered).reshape(6, 7)
     assert nearest[1, 1] == 1 * 7 + 1 and nearest[4, 5] == 4 * 7 + 5
     assert nearest[0, 0] == 8 and nearest[5, 6] == 33
+
+
+def test_offset_layout_adds_one_gaussian_channel_and_its_rate():
+    layout = MapLayout(3, True, offsets=True)
+    assert layout.channels == 57 and layout.offset == 56
+    parts = layout.split(torch.arange(57.0).reshape(1, 57))
+    assert parts.offset.tolist() == [56.0] and parts.scale.tolist() == [[53.0, 54.0, 55.0]]
+    assert MapLayout(3, True).split(torch.zeros(1, 56)).offset is None
+    with pytest.raises(ValueError, match="Gaussian branch"):
+        MapLayout(3, False, offsets=True)
+    with pytest.raises(AttributeError):
+        MapLayout(3, True).offset  # noqa: B018
+    rates = layout.channel_rates(1.0, 2.0, 3.0, 4.0, 5.0, offset=6.0, sh_rest=0.05)
+    assert rates[:3].eq(1).all() and torch.allclose(rates[3:48], torch.tensor(0.05))
+    assert rates[56] == 6 and rates[53:56].eq(5).all()
+
+
+def test_offset_map_moves_gaussians_along_the_normal_only(head):
+    avatar = make_avatar(head, count=50)
+    offset_avatar = make_avatar(head, count=50)
+    layout = MapLayout(1, True, offsets=True)
+    maps = torch.cat([avatar.maps, torch.full((*avatar.maps.shape[:2], 1), 0.004)], -1)
+    offset_avatar.layout, offset_avatar.maps = layout, maps
+    cam = camera()
+    with torch.no_grad():
+        verts, rot = avatar.skin(avatar.frame(3))
+        a = avatar.lift_gaussians(verts, rot, cam)
+        b = offset_avatar.lift_gaussians(verts, rot, cam)
+    step = b.means - a.means
+    assert torch.allclose(step.norm(dim=-1), torch.full((50,), 0.004), atol=1e-6)
+    w, x, y, z = a.quats.unbind(-1)  # the rotation's local z axis is the posed normal
+    normal_z = torch.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)], -1)
+    assert torch.allclose((step * normal_z).sum(-1), torch.full((50,), 0.004), atol=1e-6)
+    assert torch.equal(a.scales, b.scales) and torch.equal(a.opacities, b.opacities)
+    assert b.offset is not None and a.offset is None
+
+
+def test_offset_avatar_round_trips_through_its_directory(head, tmp_path):
+    avatar = make_avatar(head, count=20)
+    avatar.layout = MapLayout(1, True, offsets=True)
+    avatar.maps = torch.cat([avatar.maps, torch.rand(*avatar.maps.shape[:2], 1)], -1)
+    loaded = load_avatar(save_avatar(avatar, tmp_path / "a"))
+    assert loaded.layout == avatar.layout and torch.equal(loaded.maps, avatar.maps)
+
+
+def test_sh_degree_argument_limits_the_bands_used(head):
+    avatar = make_avatar(head, sh_degree=1, count=30)
+    avatar.maps[..., 3:12] = 0.3  # only the degree-1 band
+    cam = camera()
+    with torch.no_grad():
+        dc = avatar.render(avatar.frame(3), cam, sh_degree=0).image
+        full = avatar.render(avatar.frame(3), cam).image
+        avatar.maps[..., 3:12] = 0.0
+        plain = avatar.render(avatar.frame(3), cam).image
+    assert torch.equal(dc, plain) and not torch.equal(full, plain)
+
+
+def test_shading_maps_scale_colour_with_the_surface_rotation(head):
+    avatar = make_avatar(head, count=40)
+    base = avatar.maps
+    avatar.layout = MapLayout(1, True, shading=True)
+    a = torch.zeros(*base.shape[:2], 9)
+    a[..., 2] = 0.8  # gain 1 + 0.8·(R − I)_02: grows with a turn about y
+    avatar.maps = torch.cat([base, a], -1)
+    cam = camera()
+    params = avatar.frame(3)
+    turned = type(params)(*(p.clone() for p in params))
+    turned.pose[1] = 0.3
+    plain = make_avatar(head, count=40)
+    with torch.no_grad():
+        same = avatar.render(params, cam).image  # R = I: shading maps do nothing
+        reference = plain.render(plain.frame(3), cam).image
+        lit = avatar.render(turned, cam).image
+        unlit = plain.render(turned, cam).image
+    assert torch.allclose(same, reference, atol=1e-6)
+    covered = (unlit - 1).abs().sum(-1) > 0.05  # head pixels, not background
+    ratio = (lit[covered] / unlit[covered].clamp_min(1e-3)).mean()
+    assert ratio == pytest.approx(1 + 0.8 * float(torch.sin(torch.tensor(0.3))), abs=0.03)

@@ -83,6 +83,27 @@ class FitConfig:
     iterations: int = option(50_000, "training iterations (paper: 50k)")
     uv_resolution: int = option(2048, "side of every UV map (paper: 2048)")
     sh_degree: int = option(3, "spherical-harmonics degree of the colour map, 0-3 (paper: 3)")
+    sh_degree_every: int = option(
+        0,
+        "iterations between raising the SH degree used by one, from 0 up to sh_degree "
+        "(0 = the full degree from the start, as the paper; 3DGS: 1000)",
+    )
+    sh_rest_rate: float = option(
+        1.0,
+        "learning-rate factor of the SH bands above DC, relative to lr_color "
+        "(paper: 1; 3DGS: 1/20)",
+    )
+    gaussian_offset: bool = option(
+        False,
+        "give the Gaussians their own offset map E along the normal, x = P + (D + E)·n, so "
+        "they can leave the surface (hair) without moving the mesh (ours; paper: off)",
+    )
+    lr_offset: float = option(2e-4, "learning rate of E, metres (ours)")
+    lambda_offset: float = option(
+        1.0,
+        "weight of the mean squared Gaussian offset E, in units of (100 mm)⁻²: an offset has "
+        "to pay for itself in image error (ours)",
+    )
     initial_gaussians: int = option(
         10_000, "Gaussians sampled uniformly over the UV surface at the start (ours)"
     )
@@ -141,7 +162,18 @@ class FitConfig:
     eval_frames: int = option(
         16, "held-out frames (evenly spread) scored for the PSNR-vs-time log (ours)"
     )
+    shading: bool = option(
+        False,
+        "pose-driven shading maps A: colour × (1 + Σ A_ij (R − I)_ij), R the surface's "
+        "rotation — light fixed in the room while the head turns (ours; paper: off)",
+    )
+    lr_shading: float = option(1e-3, "learning rate of the shading maps A (ours)")
     checkpoint_every: int = option(1_000, "iterations between atomic checkpoints (ours)")
+    refine_steps: int = option(
+        40,
+        "test-time refinement: Adam steps on each held-out frame's FLAME row against the "
+        "frozen avatar, reported as psnr_refined beside psnr (0 = none; ours)",
+    )
     seed: int = option(0, "random seed")
 
     def __post_init__(self):
@@ -156,6 +188,8 @@ class FitConfig:
             ("error_grid", self.error_grid >= 1),
             ("eval_frames", self.eval_frames >= 1),
             ("checkpoint_every", self.checkpoint_every >= 1),
+            ("sh_degree_every", self.sh_degree_every >= 0),
+            ("refine_steps", self.refine_steps >= 0),
             ("prune_opacity", 0 <= self.prune_opacity < 1),
             ("depth_eps", self.depth_eps >= 0),
             ("lr_decay_final", 0 < self.lr_decay_final <= 1),
@@ -165,7 +199,11 @@ class FitConfig:
         for name, ok in checks:
             if not ok:
                 raise InvalidArgumentError(f"{name} is out of range: {getattr(self, name)!r}")
-        rates = [f.name for f in fields(self) if f.name.startswith(("lr_", "lambda_"))]
+        rates = [
+            f.name
+            for f in fields(self)
+            if f.name.startswith(("lr_", "lambda_")) or f.name == "sh_rest_rate"
+        ]
         for name in rates:
             value = getattr(self, name)
             if not (value >= 0 and value != float("inf")):

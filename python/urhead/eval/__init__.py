@@ -1,5 +1,13 @@
 """Evaluating an avatar against held-out frames (FORMATS.md "Evaluation protocol")."""
 
-from urhead.eval.metrics import FrameScores, evaluate_frames
+from urhead.eval.metrics import FrameScores, evaluate_frames, refine_params_of
+from urhead.eval.refine import RefineSettings, refine_params, refine_sequence
 
-__all__ = ["FrameScores", "evaluate_frames"]
+__all__ = [
+    "FrameScores",
+    "RefineSettings",
+    "evaluate_frames",
+    "refine_params",
+    "refine_params_of",
+    "refine_sequence",
+]

@@ -1,7 +1,9 @@
-"""Image metrics of an avatar over a sequence of frames, inside the head mask, on the
-subject's background: PSNR and SSIM of the composite and PSNR of the mesh branch alone.
-LPIPS needs network weights that cannot be downloaded here; it is reported as None unless
-a caller supplies a scorer."""
+"""Image metrics of an avatar over a sequence of frames (FORMATS.md "Evaluation protocol"),
+on the subject's background: PSNR inside the head mask (``psnr``) and over the full image
+(``psnr_full``), SSIM inside the mask, PSNR of the mesh branch alone; the same PSNRs after
+test-time refinement of the held-out frames' FLAME rows (``psnr_refined``,
+``psnr_refined_full``) when asked for. LPIPS needs network weights that cannot be
+downloaded here; it is None unless a caller supplies a scorer."""
 
 from __future__ import annotations
 
@@ -10,19 +12,24 @@ from dataclasses import dataclass
 
 import torch
 
+from urhead.eval.refine import RefineSettings, refine_sequence
 from urhead.losses import psnr, ssim
 from urhead.model.avatar import Avatar, FlameParams
 
 
 @dataclass(frozen=True)
 class FrameScores:
-    """Means over the frames; ``per_frame_psnr`` keeps each frame's value."""
+    """Means over the frames; ``per_frame_psnr`` keeps each frame's in-mask value."""
 
     psnr: float
+    psnr_full: float
     ssim: float
     psnr_mesh_only: float | None
     lpips: float | None
     per_frame_psnr: tuple[float, ...]
+    psnr_refined: float | None = None
+    psnr_refined_full: float | None = None
+    ssim_refined: float | None = None
 
 
 def frame_params(avatar: Avatar, frame) -> FlameParams:
@@ -33,7 +40,27 @@ def frame_params(avatar: Avatar, frame) -> FlameParams:
     return avatar.params_from_flame(frame.flame)
 
 
+def _mean(xs):
+    return sum(xs) / len(xs) if xs else None
+
+
 @torch.no_grad()
+def _score(avatar, frames, params, *, occlusion_aware, mesh_only, lpips):
+    per = {"psnr": [], "psnr_full": [], "ssim": [], "mesh": [], "lpips": []}
+    for frame, p in zip(frames, params, strict=True):
+        out = avatar.render(p, frame.camera, occlusion_aware=occlusion_aware)
+        image = out.image.clamp(0, 1)
+        per["psnr"].append(float(psnr(image, frame.image, frame.mask)))
+        per["psnr_full"].append(float(psnr(image, frame.image)))
+        per["ssim"].append(float(ssim(image, frame.image, frame.mask)))
+        if mesh_only:
+            mesh = out.mesh.image.clamp(0, 1)
+            per["mesh"].append(float(psnr(mesh, frame.image, frame.mask)))
+        if lpips is not None:
+            per["lpips"].append(float(lpips(image, frame.image, frame.mask)))
+    return per
+
+
 def evaluate_frames(
     avatar: Avatar,
     frames: Sequence,
@@ -41,21 +68,64 @@ def evaluate_frames(
     occlusion_aware: bool = True,
     mesh_only: bool = True,
     lpips: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], float] | None = None,
+    refine: RefineSettings | None = None,
+    progress=None,
+    params: Sequence[FlameParams] | None = None,
 ) -> FrameScores:
-    """Scores ``frames`` (dataset frames with image, mask, camera, flame)."""
+    """Scores ``frames`` (dataset frames with image, mask, camera, flame) with ``params``
+    (default: :func:`frame_params` of each); with ``refine`` (steps > 0) also after refining
+    each held-out frame's FLAME row (training frames keep their trained rows).
+    ``progress`` is called once per refined frame."""
     if len(frames) == 0:
         raise ValueError("frames is empty: nothing to evaluate")
-    psnrs, ssims, mesh_psnrs, lpipss = [], [], [], []
-    for frame in frames:
-        params = frame_params(avatar, frame)
-        out = avatar.render(params, frame.camera, occlusion_aware=occlusion_aware)
-        image = out.image.clamp(0, 1)
-        psnrs.append(float(psnr(image, frame.image, frame.mask)))
-        ssims.append(float(ssim(image, frame.image, frame.mask)))
-        if mesh_only:
-            mesh = out.mesh.image.clamp(0, 1)
-            mesh_psnrs.append(float(psnr(mesh, frame.image, frame.mask)))
-        if lpips is not None:
-            lpipss.append(float(lpips(image, frame.image, frame.mask)))
-    mean = lambda xs: sum(xs) / len(xs) if xs else None  # noqa: E731
-    return FrameScores(mean(psnrs), mean(ssims), mean(mesh_psnrs), mean(lpipss), tuple(psnrs))
+    frames = list(frames)
+    if params is None:
+        params = [frame_params(avatar, f) for f in frames]
+    elif len(params) != len(frames):
+        raise ValueError(f"{len(params)} parameter sets for {len(frames)} frames")
+    per = _score(
+        avatar, frames, params, occlusion_aware=occlusion_aware, mesh_only=mesh_only, lpips=lpips
+    )
+    scores = FrameScores(
+        psnr=_mean(per["psnr"]),
+        psnr_full=_mean(per["psnr_full"]),
+        ssim=_mean(per["ssim"]),
+        psnr_mesh_only=_mean(per["mesh"]),
+        lpips=_mean(per["lpips"]),
+        per_frame_psnr=tuple(per["psnr"]),
+    )
+    if refine is None or refine.steps == 0:
+        return scores
+    refined = refine_params_of(avatar, frames, refine, occlusion_aware, progress)
+    after = _score(
+        avatar, frames, refined, occlusion_aware=occlusion_aware, mesh_only=False, lpips=None
+    )
+    return FrameScores(
+        **{
+            **scores.__dict__,
+            "psnr_refined": _mean(after["psnr"]),
+            "psnr_refined_full": _mean(after["psnr_full"]),
+            "ssim_refined": _mean(after["ssim"]),
+        }
+    )
+
+
+def refine_params_of(
+    avatar: Avatar, frames: Sequence, settings: RefineSettings, occlusion_aware=True, progress=None
+) -> list[FlameParams]:
+    """Each frame's parameters after test-time refinement; training frames (whose rows the
+    fit already refined) keep their trained rows."""
+    held = [i for i, f in enumerate(frames) if not bool((avatar.timesteps == f.timestep).any())]
+    params = [frame_params(avatar, f) for f in frames]
+    held_frames = [frames[i] for i in held]
+    refined = refine_sequence(
+        avatar,
+        held_frames,
+        [params[i] for i in held],
+        settings,
+        occlusion_aware=occlusion_aware,
+        progress=progress,
+    )
+    for i, p in zip(held, refined, strict=True):
+        params[i] = p
+    return params

@@ -101,6 +101,8 @@ class GaussianLift(NamedTuple):
     """(N, K, 3) SH coefficients, in the surface's rest frame."""
     frames: torch.Tensor
     """(N, 3, 3) skinning rotation at each Gaussian (rest frame → world), detached."""
+    offset: torch.Tensor | None = None
+    """(N,) each Gaussian's own offset E along the normal, metres (None without E)."""
 
 
 class GaussianRender(NamedTuple):
@@ -197,6 +199,7 @@ class Avatar:
         occlusion_aware: bool = True,
         normals: bool = False,
         gather: TextureGather | None = None,
+        sh_degree: int | None = None,
     ) -> Render:
         """Renders one frame. Differentiable in ``maps`` (sparse gradient) and ``params``.
 
@@ -209,13 +212,17 @@ class Avatar:
             gather: route the maps' gradient of every lookup into this
                 :class:`~urhead.ops.TextureGather` (one coalesced gradient per iteration)
                 instead of ``maps.grad``.
+            sh_degree: evaluate colour up to this SH degree (default: the layout's; the fit
+                raises it progressively).
         """
         verts, rotations = self.skin(params)
         displaced, offsets = self.displace(verts, rotations, gather)
-        mesh = self.shade_mesh(displaced, offsets, rotations, camera, normals, gather)
+        mesh = self.shade_mesh(
+            displaced, offsets, rotations, camera, normals, gather, sh_degree=sh_degree
+        )
         if not (gaussians and self.layout.gaussians and self.num_gaussians > 0):
             return Render(mesh.image, mesh, None)
-        lift = self.lift_gaussians(verts, rotations, camera, gather)
+        lift = self.lift_gaussians(verts, rotations, camera, gather, sh_degree=sh_degree)
         splats = self.splat(lift, camera, mesh.depth if occlusion_aware else None)
         image = splats.image + splats.transmittance[..., None] * mesh.image
         return Render(image, mesh, splats)
@@ -244,7 +251,7 @@ class Avatar:
         return verts + offsets, offsets
 
     def shade_mesh(
-        self, displaced, offsets, rotations, camera, want_normals, gather=None
+        self, displaced, offsets, rotations, camera, want_normals, gather=None, sh_degree=None
     ) -> MeshRender:
         """The mesh branch: rasterize, look the maps up at covered pixels, SH colour,
         antialias over the background."""
@@ -260,7 +267,7 @@ class Avatar:
         rot_image = interpolate(rotations.reshape(-1, 9), raster, t["faces"])
         pixel_rot = rot_image.reshape(-1, 9)[pixels].reshape(-1, 3, 3)
         rays = self._pixel_rays(camera)[pixels]
-        rgb = self._sh_color(rows, rays, pixel_rot.detach())
+        rgb = self._sh_color(rows, rays, pixel_rot.detach(), sh_degree)
         background = torch.cat([self.background, self.background.new_zeros(1)])
         flat = background.expand(h * w, 4).clone()
         flat = flat.index_put((pixels,), torch.cat([rgb, rgb.new_ones(rgb.shape[0], 1)], 1))
@@ -282,9 +289,10 @@ class Avatar:
             offsets,
         )
 
-    def lift_gaussians(self, verts, rotations, camera, gather=None) -> GaussianLift:
+    def lift_gaussians(self, verts, rotations, camera, gather=None, sh_degree=None) -> GaussianLift:
         """Each Gaussian's attributes from its UV point: position P + D·n on the posed
-        surface, rotation from the posed normal, scale, opacity and colour from the maps."""
+        surface (P + (D + E)·n with the offset map E), rotation from the posed normal,
+        scale, opacity and colour from the maps."""
         layout = self.layout
         face_verts = self.tables()["faces_long"][self.gaussian_face]  # (N, 3)
         bary = self.gaussian_bary[:, :, None]
@@ -293,7 +301,10 @@ class Avatar:
         rows = self.lookup(self.gaussian_uv, gather)
         samples = layout.split(rows)
         normal = _rotate_normalize(frames, samples.normal)
-        means = surface + samples.displacement[:, None] * normal
+        lift = samples.displacement
+        if samples.offset is not None:
+            lift = lift + samples.offset
+        means = surface + lift[:, None] * normal
         sh = samples.color.reshape(-1, layout.sh_coeffs, 3)
         rays = means.detach() - camera.center
         rays = rays / rays.norm(dim=-1, keepdim=True).clamp_min(1e-12)
@@ -302,9 +313,10 @@ class Avatar:
             quats=normal_to_quat(normal),
             scales=samples.scale.exp(),
             opacities=torch.sigmoid(samples.opacity),
-            colors=self._sh_color(rows, rays, frames.detach()),
+            colors=self._sh_color(rows, rays, frames.detach(), sh_degree),
             sh=sh,
             frames=frames.detach(),
+            offset=samples.offset,
         )
 
     def splat(self, lift: GaussianLift, camera, depth_map) -> GaussianRender:
@@ -322,15 +334,22 @@ class Avatar:
         )
         return GaussianRender(out.image, out.transmittance, out.radii, lift)
 
-    def _sh_color(self, rows: torch.Tensor, rays: torch.Tensor, rotation: torch.Tensor):
+    def _sh_color(self, rows, rays, rotation, sh_degree: int | None = None):
         """(P, 3) colours from map-sample rows (P, channels) seen along world rays
         (P, 3), with the view direction taken in the surface's rest frame (``rotation``
         (P, 3, 3) the skinning rotation, undone): view-dependent colour then follows the
         surface as the head moves, and with a fixed camera it can absorb shading that
-        changes with the head's rotation."""
+        changes with the head's rotation. With shading maps A the colour is scaled by
+        1 + Σ A_ij (R − I)_ij: light fixed in the room, to first order in the rotation."""
         local = (rays[:, :, None] * rotation).sum(1)  # Rᵀ·ray
         local = local / local.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        return sh_shade(rows, local, self.layout.sh_degree)
+        top = self.layout.sh_degree
+        rgb = sh_shade(rows, local, top if sh_degree is None else min(sh_degree, top))
+        if not self.layout.shading:
+            return rgb
+        features = (rotation - torch.eye(3, dtype=rotation.dtype)).reshape(-1, 9)
+        gain = 1 + (rows[:, self.layout.shading_maps] * features).sum(-1)
+        return rgb * gain[:, None]
 
     def _pixel_rays(self, camera: Camera) -> torch.Tensor:
         """(H·W, 3) unit world directions of the pixels' rays (from the camera centre to

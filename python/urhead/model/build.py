@@ -37,6 +37,8 @@ def build_avatar(
     sh_degree: int,
     gaussians: bool,
     initial_gaussians: int,
+    offsets: bool = False,
+    shading: bool = False,
     background: torch.Tensor,
     depth_eps: float,
     color_frames: int,
@@ -47,8 +49,10 @@ def build_avatar(
     Args:
         resolution: side of the UV maps. sh_degree: 0–3. gaussians: with the Gaussian
         branch (O, S maps and Gaussians) or mesh only. initial_gaussians: how many, uniform
-        over the UV area. color_frames: how many training frames (spread over the
-        sequence) initialise C by projection; 0 starts from grey.
+        over the UV area. offsets: with the Gaussians' own offset map E (zero at the
+        start). shading: with the pose-driven shading maps A (zero at the start).
+        color_frames: how many training frames (spread over the sequence) initialise C by
+        projection; 0 starts from grey.
     """
     if not head.has_uv:
         raise InvalidArgumentError("the head model has no UV layout; an avatar needs one")
@@ -67,7 +71,7 @@ def build_avatar(
             )
         static = torch.from_numpy(offset.astype(np.float32))
     timesteps, params = frame_table(train, num_expr)
-    layout = MapLayout(sh_degree, gaussians)
+    layout = MapLayout(sh_degree, gaussians, offsets, shading)
     avatar = Avatar(
         head=head,
         layout=layout,

@@ -77,6 +77,8 @@ def write_avatar_files(avatar: Avatar, folder: Path, extra: dict | None = None) 
         "format_version": AVATAR_FORMAT,
         "sh_degree": layout.sh_degree,
         "gaussians": layout.gaussians,
+        "offsets": layout.offsets,
+        "shading": layout.shading,
         "resolution": avatar.resolution,
         "channels": layout.channels,
         "num_gaussians": avatar.num_gaussians,
@@ -131,7 +133,12 @@ def load_avatar(path: str | os.PathLike) -> Avatar:
         if not (path / name).is_file():
             raise FileNotFoundError(f"{path / name}: missing from the avatar directory")
     head = load_head(path / "head.npz")
-    layout = MapLayout(int(meta["sh_degree"]), bool(meta["gaussians"]))
+    layout = MapLayout(
+        int(meta["sh_degree"]),
+        bool(meta["gaussians"]),
+        offsets=bool(meta.get("offsets", False)),
+        shading=bool(meta.get("shading", False)),
+    )
     maps = torch.from_numpy(np.load(path / "maps.npy", allow_pickle=False))
     r = int(meta["resolution"])
     _expect("maps.npy", maps, (r, r, layout.channels))

@@ -23,6 +23,9 @@ import torch
 from urhead.losses import l1, laplacian_loss, ssim
 from urhead.model.avatar import Render
 
+OFFSET_UNIT = 0.1
+"""metres: the Gaussian offset regulariser is the mean of (E / OFFSET_UNIT)²."""
+
 
 class LossTerms(NamedTuple):
     total: torch.Tensor
@@ -40,6 +43,7 @@ def training_loss(
     lambda_laplacian: float,
     laplacian: torch.Tensor,
     use_normals: bool,
+    lambda_offset: float = 0.0,
 ) -> LossTerms:
     """The loss of one rendered training frame (a dataset :class:`Frame`)."""
     target = frame.image
@@ -64,6 +68,12 @@ def training_loss(
         lap = laplacian_loss(render.mesh.offsets, laplacian)
         total = total + lambda_laplacian * lap
         terms["laplacian"] = float(lap.detach())
+    offset = render.gaussians.lift.offset if render.gaussians is not None else None
+    if offset is not None and lambda_offset > 0 and offset.numel():
+        # In units of (100 mm)²: a hair shell of ~1 cm costs 1 % of λ per Gaussian.
+        reg = (offset / OFFSET_UNIT).square().mean()
+        total = total + lambda_offset * reg
+        terms["offset"] = float(reg.detach())
     return LossTerms(total, terms)
 
 

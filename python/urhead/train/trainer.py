@@ -22,7 +22,7 @@ import torch
 import torch.nn.functional as F
 
 from urhead.config import FitConfig
-from urhead.eval import evaluate_frames
+from urhead.eval import RefineSettings, evaluate_frames
 from urhead.losses import psnr
 from urhead.model import ErrorAccumulator, UvSurface, build_avatar, save_avatar, set_gaussians
 from urhead.model.avatar import Avatar, Render
@@ -79,6 +79,15 @@ def uv_lr_factor(config: FitConfig, iteration: int) -> float:
     return config.lr_decay_final ** ((iteration - config.lr_decay_start) / span)
 
 
+def active_sh_degree(config: FitConfig, iteration: int) -> int:
+    """The SH degree the colour is evaluated with at ``iteration``: one band more every
+    ``sh_degree_every`` iterations (3DGS's schedule: low frequencies settle before the
+    higher bands can fit noise), the full degree from the start when it is 0."""
+    if config.sh_degree_every == 0:
+        return config.sh_degree
+    return min(config.sh_degree, iteration // config.sh_degree_every)
+
+
 def eval_subset(frames, count: int) -> list:
     """``count`` held-out frames spread evenly over the sequence (all if fewer)."""
     n = len(frames)
@@ -117,6 +126,8 @@ class Trainer:
             sh_degree=c.sh_degree,
             gaussians=self.gaussians,
             initial_gaussians=c.initial_gaussians if self.gaussians else 0,
+            offsets=self.gaussians and c.gaussian_offset,
+            shading=c.shading,
             background=self.background,
             depth_eps=c.depth_eps,
             color_frames=c.color_init_frames,
@@ -129,7 +140,14 @@ class Trainer:
         avatar.maps.requires_grad_(True)
         avatar.frame_params.requires_grad_(True)
         map_lr = avatar.layout.channel_rates(
-            c.lr_color, c.lr_normal, c.lr_displacement, c.lr_opacity, c.lr_scale
+            c.lr_color,
+            c.lr_normal,
+            c.lr_displacement,
+            c.lr_opacity,
+            c.lr_scale,
+            offset=c.lr_offset,
+            sh_rest=c.sh_rest_rate,
+            shading=c.lr_shading,
         )
         e = avatar.num_expr
         frame_lr = torch.tensor(
@@ -155,6 +173,12 @@ class Trainer:
             left_out.append("mesh-only L1 term")
         if c.lambda_ssim == 0:
             left_out.append("SSIM term")
+        if self.gaussians and not c.gaussian_offset:
+            left_out.append("Gaussian offset map E")
+        if not c.shading:
+            left_out.append("pose-driven shading maps A")
+        if c.refine_steps == 0:
+            left_out.append("test-time refinement of held-out FLAME rows")
         log.info(
             "fit: %d train / %d held-out frames, maps %d² × %d channels (SH %d), %d Gaussians",
             len(self.subject.train),
@@ -226,6 +250,7 @@ class Trainer:
             occlusion_aware=c.occlusion_aware,
             normals=self.use_normals,
             gather=gather,
+            sh_degree=active_sh_degree(c, it),
         )
         loss = training_loss(
             render,
@@ -236,6 +261,7 @@ class Trainer:
             lambda_laplacian=c.lambda_laplacian,
             laplacian=avatar.tables()["laplacian"],
             use_normals=self.use_normals,
+            lambda_offset=c.lambda_offset,
         )
         loss.total.backward()
         avatar.maps.grad = gather.gradient()
@@ -327,17 +353,38 @@ class Trainer:
         c = self.config
         avatar.maps.requires_grad_(False)
         avatar.frame_params.requires_grad_(False)
-        scores = evaluate_frames(avatar, list(self.held_out), occlusion_aware=c.occlusion_aware)
+        held_out = list(self.held_out)
+        refine = RefineSettings(steps=c.refine_steps)
+        tick = time.perf_counter()
+        bar = _progress(len(held_out), 0, self.progress and c.refine_steps > 0, "refine held-out")
+        with bar:
+            scores = evaluate_frames(
+                avatar,
+                held_out,
+                occlusion_aware=c.occlusion_aware,
+                refine=refine,
+                progress=lambda: bar.update(1),
+            )
         metrics = {
             "psnr": scores.psnr,
+            "psnr_full": scores.psnr_full,
+            "psnr_refined": scores.psnr_refined,
+            "psnr_refined_full": scores.psnr_refined_full,
             "ssim": scores.ssim,
+            "ssim_refined": scores.ssim_refined,
             "lpips": scores.lpips,
             "psnr_mesh_only": scores.psnr_mesh_only,
             "num_gaussians": avatar.num_gaussians,
             "seconds": round(seconds, 2),
+            "evaluation_seconds": round(time.perf_counter() - tick, 2),
             "iterations": c.iterations,
-            "held_out_frames": len(self.held_out),
-            "metric_region": "inside the foreground mask, on the subject's background",
+            "held_out_frames": len(held_out),
+            "refine_steps": c.refine_steps,
+            "metric_region": "psnr, ssim: inside the foreground mask; *_full: the whole "
+            "image; on the subject's background",
+            "flame_parameters": "psnr*: held-out frames with their tracked FLAME parameters; "
+            "*_refined: after refine_steps Adam steps on each held-out frame's FLAME row "
+            "against the frozen avatar",
             "background": avatar.background.tolist(),
         }
         recorded = {
@@ -387,7 +434,8 @@ def _atomic_text(path: Path, text: str) -> None:
     tmp.replace(path)
 
 
-def _progress(total: int, initial: int, enabled: bool):
+def _progress(total: int, initial: int, enabled: bool, desc: str = "fit"):
     from tqdm import tqdm
 
-    return tqdm(total=total, initial=initial, desc="fit", unit="it", disable=not enabled)
+    unit = "it" if desc == "fit" else "frame"
+    return tqdm(total=total, initial=initial, desc=desc, unit=unit, disable=not enabled)

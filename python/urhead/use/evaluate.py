@@ -1,9 +1,13 @@
 """``urhead eval AVATAR``: image quality, temporal stability, speed and size of an avatar on
 a subject's held-out frames (FORMATS.md "Evaluation protocol").
 
-Every metric is inside the frame's head mask on the subject's background (the avatar's
-``background``): PSNR and SSIM (:mod:`urhead.losses`), PSNR of the mesh branch alone,
-LPIPS-alex / LPIPS-vgg when their weights are on disk (:mod:`urhead.use.lpips`).
+Metrics are on the subject's background (the avatar's ``background``), inside the frame's
+head mask unless named ``*_full`` (the whole image, the convention of the INSTA / URHead
+tables): PSNR and SSIM (:mod:`urhead.losses`), PSNR of the mesh branch alone,
+LPIPS-alex / LPIPS-vgg when their weights are on disk (:mod:`urhead.use.lpips`). Held-out
+frames are scored with their tracked FLAME parameters; with ``--refine-flame`` also after
+test-time refinement of each held-out frame's FLAME row against the frozen avatar
+(``psnr_refined``, ``psnr_refined_full``, ``ssim_refined``; :mod:`urhead.eval.refine`).
 
 Temporal stability, over consecutive frame pairs (same camera, timesteps t−1 and t):
 - ``temporal_error_change``: the mean absolute change of the signed error image,
@@ -29,6 +33,7 @@ from pathlib import Path
 
 import torch
 
+from urhead.eval import RefineSettings, evaluate_frames, refine_params_of
 from urhead.eval.metrics import frame_params
 from urhead.losses import psnr, ssim
 from urhead.use.common import (
@@ -66,6 +71,18 @@ def add_parser(subparsers) -> None:
         "(torchvision); default $URHEAD_LPIPS_DIR, then ~/.cache/urhead/lpips",
     )
     p.add_argument("--json", type=Path, default=None, help="where to write the JSON")
+    p.add_argument(
+        "--refine-flame",
+        action="store_true",
+        help="also score after refining each held-out frame's FLAME row against the frozen "
+        "avatar (reported as psnr_refined, psnr_refined_full, ssim_refined)",
+    )
+    p.add_argument(
+        "--refine-steps",
+        type=int,
+        default=RefineSettings().steps,
+        help="Adam steps per frame for --refine-flame (default: %(default)s)",
+    )
     p.set_defaults(run=run)
 
 
@@ -84,9 +101,17 @@ def run(args: argparse.Namespace) -> int:
     nets, notes = load_lpips(args.lpips_weights)
     for note in notes:
         print(note)
+    if args.refine_steps < 0:
+        raise SystemExit(f"--refine-steps must be >= 0, got {args.refine_steps}")
     configure_threads()
+    refine = RefineSettings(steps=args.refine_steps) if args.refine_flame else None
     result = evaluate_avatar(
-        opened.avatar, frames, occlusion_aware=opened.occlusion_aware, lpips=nets
+        opened.avatar,
+        frames,
+        occlusion_aware=opened.occlusion_aware,
+        lpips=nets,
+        refine=refine,
+        progress=True,
     )
     result.update(
         avatar=str(opened.path),
@@ -100,17 +125,47 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-@torch.no_grad()
-def evaluate_avatar(avatar, frames, *, occlusion_aware: bool = True, lpips=None) -> dict:
+def evaluate_avatar(
+    avatar,
+    frames,
+    *,
+    occlusion_aware: bool = True,
+    lpips=None,
+    refine: RefineSettings | None = None,
+    progress: bool = False,
+) -> dict:
     """Scores ``frames`` (dataset frames with image, mask, camera, flame); ``lpips`` maps a
-    variant name ("alex", "vgg") to a scorer ``(image, target, mask) -> float``. Returns
-    the JSON-ready metrics (module docstring)."""
-    lpips = lpips or {}
+    variant name ("alex", "vgg") to a scorer ``(image, target, mask) -> float``; with
+    ``refine`` also after test-time refinement. Returns the JSON-ready metrics (module
+    docstring)."""
     if len(frames) == 0:
         raise ValueError("frames is empty: nothing to evaluate")
+    result = _evaluate(avatar, frames, occlusion_aware=occlusion_aware, lpips=lpips or {})
+    if refine is not None and refine.steps > 0:
+        from tqdm import tqdm
+
+        with tqdm(total=len(frames), desc="refine", unit="frame", disable=not progress) as bar:
+            params = refine_params_of(
+                avatar, frames, refine, occlusion_aware, progress=lambda: bar.update(1)
+            )
+        after = evaluate_frames(
+            avatar, frames, occlusion_aware=occlusion_aware, mesh_only=False, params=params
+        )
+        result.update(
+            psnr_refined=after.psnr,
+            psnr_refined_full=after.psnr_full,
+            ssim_refined=after.ssim,
+            refine_steps=refine.steps,
+        )
+        result["per_frame"]["psnr_refined"] = list(after.per_frame_psnr)
+    return result
+
+
+@torch.no_grad()
+def _evaluate(avatar, frames, *, occlusion_aware: bool, lpips: dict) -> dict:
     first = frames[0]
     avatar.render(frame_params(avatar, first), first.camera, occlusion_aware=occlusion_aware)
-    per = {"psnr": [], "ssim": [], "psnr_mesh_only": [], "seconds": []}
+    per = {"psnr": [], "psnr_full": [], "ssim": [], "psnr_mesh_only": [], "seconds": []}
     per.update({f"lpips_{v}": [] for v in lpips})
     temporal = {"temporal_error_change": []}
     temporal.update({f"temporal_lpips_{v}": [] for v in ("alex", "vgg")})
@@ -122,6 +177,7 @@ def evaluate_avatar(avatar, frames, *, occlusion_aware: bool = True, lpips=None)
         per["seconds"].append(time.perf_counter() - start)
         image = out.image.clamp(0, 1)
         per["psnr"].append(float(psnr(image, frame.image, frame.mask)))
+        per["psnr_full"].append(float(psnr(image, frame.image)))
         per["ssim"].append(float(ssim(image, frame.image, frame.mask)))
         per["psnr_mesh_only"].append(
             float(psnr(out.mesh.image.clamp(0, 1), frame.image, frame.mask))
@@ -142,7 +198,11 @@ def evaluate_avatar(avatar, frames, *, occlusion_aware: bool = True, lpips=None)
     result = {
         "frames": len(frames),
         "psnr": _mean(per["psnr"]),
+        "psnr_full": _mean(per["psnr_full"]),
+        "psnr_refined": None,
+        "psnr_refined_full": None,
         "ssim": _mean(per["ssim"]),
+        "ssim_refined": None,
         "psnr_mesh_only": _mean(per["psnr_mesh_only"]),
     }
     for v in ("alex", "vgg"):
@@ -156,7 +216,10 @@ def evaluate_avatar(avatar, frames, *, occlusion_aware: bool = True, lpips=None)
         render_ms_median=1000.0 * median,
         resolution=[first.camera.width, first.camera.height],
         num_gaussians=avatar.num_gaussians,
-        metric_region="inside each frame's foreground mask, on the avatar's background",
+        metric_region="psnr, ssim: inside each frame's foreground mask; *_full: the whole "
+        "image; on the avatar's background",
+        flame_parameters="psnr*: held-out frames with their tracked FLAME parameters; "
+        "*_refined: after test-time refinement of each held-out frame's FLAME row",
         background=avatar.background.tolist(),
         per_frame={
             "timestep": [f.timestep for f in frames],
@@ -186,12 +249,18 @@ def _var(xs) -> float:
 
 
 def format_table(r: dict) -> str:
-    def fmt(v, spec):
-        return "skipped" if v is None else format(v, spec)
+    def fmt(v, spec, missing="skipped"):
+        return missing if v is None else format(v, spec)
 
     rows = [
         ("frames", str(r["frames"])),
-        ("PSNR (dB)", fmt(r["psnr"], ".3f")),
+        ("PSNR in mask (dB)", fmt(r["psnr"], ".3f")),
+        ("PSNR full image (dB)", fmt(r["psnr_full"], ".3f")),
+        ("PSNR refined, in mask (dB)", fmt(r["psnr_refined"], ".3f", "off (--refine-flame)")),
+        (
+            "PSNR refined, full image (dB)",
+            fmt(r["psnr_refined_full"], ".3f", "off (--refine-flame)"),
+        ),
         ("SSIM", fmt(r["ssim"], ".4f")),
         ("PSNR mesh only (dB)", fmt(r["psnr_mesh_only"], ".3f")),
         ("LPIPS alex", fmt(r["lpips_alex"], ".4f")),

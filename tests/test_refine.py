@@ -1,0 +1,141 @@
+"""Test-time refinement of held-out FLAME rows (urhead.eval.refine) and the evaluation's
+refined scores: a perturbed frame is pulled back towards the parameters that made its
+image, refinement never ends worse than it started, warm starts carry the correction,
+and a trainable avatar is refused."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from test_model import camera, make_avatar
+from urhead.eval import RefineSettings, evaluate_frames, refine_params, refine_sequence
+from urhead.head import procedural_head
+from urhead.model import FlameParams
+
+
+@pytest.fixture(scope="module")
+def head():
+    return procedural_head(0)
+
+
+def textured_avatar(head, **kwargs):
+    """A tiny avatar whose colour map has a pattern (a grey head shows only its
+    silhouette, which leaves the expression unobservable)."""
+    avatar = make_avatar(head, **kwargs)
+    r = avatar.resolution
+    v, u = torch.meshgrid(torch.linspace(0, 1, r), torch.linspace(0, 1, r), indexing="ij")
+    pattern = torch.stack(
+        [torch.sin(23 * u), torch.cos(17 * v), torch.sin(11 * (u + v))], -1
+    )  # SH DC units: ±1 is about ±0.28 in colour
+    avatar.maps[..., 0:3] = avatar.maps[..., 0:3] + pattern
+    return avatar
+
+
+def _frame(avatar, params, timestep, cam):
+    with torch.no_grad():
+        image = avatar.render(params, cam).image.clamp(0, 1)
+    mask = torch.ones(image.shape[:2])
+    return SimpleNamespace(image=image, mask=mask, camera=cam, timestep=timestep, camera_index=0)
+
+
+def _truth(avatar):
+    e = avatar.num_expr
+    expr = torch.zeros(e)
+    expr[:3] = torch.tensor([0.4, -0.3, 0.2])
+    pose = torch.zeros(15)
+    pose[:3] = torch.tensor([0.05, 0.25, 0.0])  # pitch a little, turn the head
+    pose[6] = 0.1  # jaw
+    return FlameParams(expr, pose, torch.tensor([0.004, -0.003, 0.0]))
+
+
+def _perturbed(p: FlameParams) -> FlameParams:
+    pose = p.pose.clone()
+    pose[:3] += torch.tensor([0.02, -0.03, 0.01])
+    return FlameParams(p.expr.clone(), pose, p.transl + torch.tensor([0.003, 0.002, 0.0]))
+
+
+def _pose_error(a: FlameParams, b: FlameParams) -> float:
+    return float((a.pose[:3] - b.pose[:3]).norm() + 10 * (a.transl - b.transl).norm())
+
+
+def test_refinement_moves_a_perturbed_frame_back_to_its_parameters(head):
+    avatar = textured_avatar(head, resolution=64, count=400)
+    cam = camera(64)
+    truth = _truth(avatar)
+    frame = _frame(avatar, truth, 100, cam)
+    start = _perturbed(truth)
+    out = refine_params(avatar, frame, start, RefineSettings(steps=40))
+    assert _pose_error(out, truth) < 0.5 * _pose_error(start, truth)
+    assert all(torch.isfinite(p).all() for p in out)
+    assert not any(p.requires_grad for p in out)
+
+
+def test_refinement_never_ends_worse_and_zero_steps_is_identity(head):
+    avatar = textured_avatar(head, resolution=32, count=100)
+    cam = camera(48)
+    truth = _truth(avatar)
+    frame = _frame(avatar, truth, 100, cam)
+    # Rates so large that Adam overshoots: the best state seen (the start) is kept.
+    wild = RefineSettings(steps=3, lr_expression=50.0, lr_pose=5.0, lr_translation=5.0)
+    out = refine_params(avatar, frame, truth, wild)
+    assert all(torch.equal(a, b) for a, b in zip(out, truth, strict=True))
+    same = refine_params(avatar, frame, truth, RefineSettings(steps=0))
+    assert same is truth
+
+
+def test_refinement_refuses_a_trainable_avatar(head):
+    avatar = textured_avatar(head, resolution=32, count=50)
+    cam = camera(32)
+    frame = _frame(avatar, _truth(avatar), 100, cam)
+    avatar.maps.requires_grad_(True)
+    with pytest.raises(ValueError, match="frozen avatar"):
+        refine_params(avatar, frame, _truth(avatar), RefineSettings(steps=1))
+
+
+def test_warm_start_carries_the_previous_correction(head):
+    avatar = textured_avatar(head, resolution=32, count=100)
+    cam = camera(48)
+    truth = _truth(avatar)
+    frames = [_frame(avatar, truth, t, cam) for t in (100, 101)]
+    starts = [_perturbed(truth), _perturbed(truth)]
+    calls = []
+    warm = refine_sequence(
+        avatar, frames, starts, RefineSettings(steps=15), progress=lambda: calls.append(1)
+    )
+    cold = refine_sequence(avatar, frames, starts, RefineSettings(steps=15, warm_start=False))
+    assert len(calls) == 2
+    # The second frame is identical to the first: warm, it starts where the first ended
+    # and gets closer than a cold start with the same budget.
+    assert _pose_error(warm[1], truth) < _pose_error(cold[1], truth)
+    assert torch.equal(warm[0].pose, cold[0].pose)
+
+
+def test_evaluate_frames_reports_both_conventions_and_refined_scores(head):
+    avatar = textured_avatar(head, resolution=32, count=150)
+    cam = camera(48)
+    truth = _truth(avatar)
+    frame = _frame(avatar, truth, 100, cam)
+    frame.mask = torch.zeros(48, 48)
+    frame.mask[8:40, 8:40] = 1.0
+    e = avatar.num_expr
+    tracked = _perturbed(truth)
+    frame.flame = {
+        "expr": tracked.expr[None].numpy(),
+        "rotation": tracked.pose[None, 0:3].numpy(),
+        "neck_pose": tracked.pose[None, 3:6].numpy(),
+        "jaw_pose": tracked.pose[None, 6:9].numpy(),
+        "eyes_pose": tracked.pose[None, 9:15].numpy(),
+        "translation": tracked.transl[None].numpy(),
+    }
+    assert e == tracked.expr.numel()
+    plain = evaluate_frames(avatar, [frame])
+    assert plain.psnr_refined is None
+    scores = evaluate_frames(avatar, [frame], refine=RefineSettings(steps=30))
+    assert scores.psnr == pytest.approx(plain.psnr)
+    # Background pixels are nearly free: the full-image PSNR reads higher.
+    assert scores.psnr_full > scores.psnr
+    assert scores.psnr_refined > scores.psnr + 1.0
+    assert scores.psnr_refined_full > scores.psnr_full
