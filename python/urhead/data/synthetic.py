@@ -102,13 +102,14 @@ LIGHTS = {
         ambient_down=(0.34, 0.32, 0.3),
     ),
     # Even light, the oracle: a uniform ambient and nothing directional, so every pixel
-    # shows its albedo whatever the pose (no shading, shadows or specular).
+    # shows its albedo whatever the pose (no shading, shadows or specular), at the mean
+    # exposure of the head under key and soft (0.78 and 0.76 of the albedo).
     "flat": Light(
         direction=(0.0, 0.0, 1.0),
         color=(0.0, 0.0, 0.0),
         angular_radius=0.0,
-        ambient_up=(1.0, 1.0, 1.0),
-        ambient_down=(1.0, 1.0, 1.0),
+        ambient_up=(0.77, 0.77, 0.77),
+        ambient_down=(0.77, 0.77, 0.77),
     ),
 }
 BACKGROUND = (1.0, 1.0, 1.0)
