@@ -45,9 +45,10 @@ CAPTURE_TRACKING_NOISE = 0.26
 """The tracking-noise scale of a plausible capture: a mean face-vertex displacement of
 about 1 px at 512² (1.00 px mean, 2.4 px on the worst frame, 5.2 px at most over the 600
 frames of seed 0; 0.9–1.1 px mean for other seeds and lengths). Landmark fits alone leave
-a few pixels (detectors err by ~2–3 % of the inter-ocular distance, ~90 px here); trackers
-that add a dense photometric term, such as VHAP, typically bring the reprojection error
-to about a pixel. Scale 1 (``hard``) leaves 3.9 px mean, 9.1 px on the worst frame."""
+a few pixels (detectors err by ~2–4 % of the inter-ocular distance, ~100 px between the
+eye centres here); trackers that add a dense photometric term, such as VHAP, typically
+bring the reprojection error to about a pixel. Scale 1 (``hard``) leaves 3.9 px mean,
+9.1 px on the worst frame."""
 
 CONDITIONS = ("light", "hair", "tracking_noise")
 """The SynthConfig fields a difficulty supplies unless they are given."""
