@@ -127,7 +127,7 @@ def test_refuses_to_replace_a_folder_that_is_not_a_subject(tmp_path):
     with pytest.raises(FileExistsError, match="not a synthetic subject"):
         synthesize(tmp_path / "precious", TINY, progress=False)
     with pytest.raises(ValueError, match="difficulty must be one of"):
-        SynthConfig(difficulty="extreme")
+        SynthConfig(difficulty="impossible")
 
 
 def test_contact_sheet_decodes_only_the_frames_it_shows(tiny_subject, tmp_path, monkeypatch):

@@ -3,7 +3,14 @@ with per-vertex albedo and materials, wrinkle fields (true displacement, driven 
 expression), hair volume, hair strands and eyelashes attached to the skin, and decals
 (eyebrow hairs, freckles, a mole, irises and pupils) evaluated by the ray tracer at every
 hit. All positions are in the rest pose with the subject's identity (the "solid" space
-the ray tracer's procedural detail lives in)."""
+the ray tracer's procedural detail lives in).
+
+The hair comes in three kinds (``HAIR_MODES``), all drawn from the same random numbers so
+that they share identity, look and performance and differ only in the hair: ``strands``
+(a volume over the scalp with strands and eyelashes on it), ``shell`` (the same volume,
+a surface up to 9 mm off the scalp, with the eyelashes and without strands) and ``none``
+(the hair only painted on the scalp: nothing off the FLAME surface, eyelashes dropped
+too, so it is the oracle of geometry the mesh can represent)."""
 
 from __future__ import annotations
 
@@ -18,6 +25,7 @@ from urhead.raytrace import Material, decal
 
 # Material ids (rows of MATERIALS).
 SKIN, LIPS, EYE, MOUTH, TEETH, HAIR, STRAND, LASH = range(8)
+HAIR_MODES = ("none", "shell", "strands")
 MATERIALS = (
     Material(
         specular=0.22,
@@ -118,8 +126,12 @@ def build_look(
     levels: int,
     hair_strands: int,
     wrinkle_scale: float,
+    hair: str = "strands",
 ) -> SubjectLook:
     import torch
+
+    if hair not in HAIR_MODES:
+        raise ValueError(f"hair must be one of {HAIR_MODES}, got {hair!r}")
 
     num_named = 12
     shape = np.zeros(head.num_shape, np.float32)
@@ -177,7 +189,8 @@ def build_look(
     dist_to_face, _ = tree_face.query(rest)
     scalp = (region == region_index("scalp")).astype(float)
     hair_thickness = scalp * 0.009 * _smoothstep(0.0, 0.02, dist_to_face)
-    static = S @ hair_thickness
+    volume = hair_thickness if hair != "none" else np.zeros_like(hair_thickness)
+    static = S @ volume
     p = solid.astype(np.float64)
     waves = rng.normal(size=(24, 3))
     waves *= (2 * np.pi / rng.uniform(0.002, 0.006, size=24))[:, None] / np.linalg.norm(
@@ -255,10 +268,11 @@ def build_look(
         rows.append(decal(front_point, radius=0.19 * r, color=(0.02, 0.02, 0.02), opacity=1.0))
     decals = np.asarray(rows, np.float32)
 
-    strands = [
-        _hair(head, rest, region, dist_to_face, hair_thickness, hair_color, rng, hair_strands),
-        _lashes(head, rest, region, marks, rng),
-    ]
+    # Both kinds of strands are always drawn, so the random numbers that follow (the
+    # performance, the tracking noise) do not depend on the hair mode.
+    combed = _hair(head, rest, region, dist_to_face, hair_thickness, hair_color, rng, hair_strands)
+    lashes = _lashes(head, rest, region, marks, rng)
+    strands = {"none": [], "shell": [lashes], "strands": [combed, lashes]}[hair]
     return SubjectLook(
         shape=shape,
         rest=rest.astype(np.float32),

@@ -5,6 +5,11 @@ performing a talking, expressive sequence with head turns up to ±35° yaw, ray-
 :mod:`urhead.raytrace` and written in the VHAP / GaussianAvatars layout with noisy
 ("tracked") FLAME parameters and ground-truth normal maps.
 
+Three conditions the model cannot follow exactly can each be set apart, so that each and
+its remedy is measured against its oracle: the light (``key``, ``soft``, ``flat``), the
+hair (``strands``, ``shell``, ``none``) and the tracking noise (a scale; 0 writes the
+exact parameters). The difficulty presets supply them unless given explicitly.
+
 Also written: ``head.npz`` (the head model the FLAME parameters refer to),
 ``synthetic_ground_truth.npz`` (the exact parameters), ``synthetic.json`` (settings, the
 cache key). ``urhead synth --out DIR`` reuses ``DIR`` when its cache key matches.
@@ -16,7 +21,7 @@ import argparse
 import hashlib
 import json
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import NamedTuple
 
@@ -26,36 +31,88 @@ import torch
 from urhead.camera import Camera
 from urhead.data.subdivision import vertex_normals
 from urhead.data.synth_motion import FPS, performance, tracking_noise
-from urhead.data.synth_scene import MATERIALS, Strands, SubjectLook, build_look
+from urhead.data.synth_scene import HAIR_MODES, MATERIALS, Strands, SubjectLook, build_look
 from urhead.data.writer import SubjectWriter
 from urhead.raytrace import Light, TriangleBvh, raytrace
 
-GENERATOR_VERSION = 2
+GENERATOR_VERSION = 3
 """Bump when the generator's output changes: it is part of the cache key."""
 
 HEAD_SEED = 0
 """The subjects use the default built-in head (``procedural_head(0)``), as the fit does."""
 
+CAPTURE_TRACKING_NOISE = 0.26
+"""The tracking-noise scale of a plausible capture: a mean face-vertex displacement of
+about 1 px at 512² (1.00 px mean, 2.4 px on the worst frame, 5.2 px at most over the 600
+frames of seed 0; 0.9–1.1 px mean for other seeds and lengths). Landmark fits alone leave
+a few pixels (detectors err by ~2–4 % of the inter-ocular distance, ~100 px between the
+eye centres here); trackers that add a dense photometric term, such as VHAP, typically
+bring the reprojection error to about a pixel. Scale 1 (``hard``) leaves 3.9 px mean,
+9.1 px on the worst frame."""
+
+CONDITIONS = ("light", "hair", "tracking_noise")
+"""The SynthConfig fields a difficulty supplies unless they are given."""
+
 DIFFICULTIES = {
-    # max yaw, expression scale, tracking noise, wrinkle scale, strands, subdivision levels
+    # The performance and look: max yaw, expression scale, wrinkle scale, strands drawn,
+    # subdivision levels; then the conditions.
     "easy": dict(
-        max_yaw_deg=15.0, expression_scale=0.6, noise=0.5, wrinkles=0.6, strands=800, levels=1
+        max_yaw_deg=15.0, expression_scale=0.6, wrinkles=0.6, strands=800, levels=1,
+        light="key", hair="strands", tracking_noise=0.5,
     ),
+    # A plausible capture: light as indoors, short hair (a shell over the scalp, as most
+    # subjects of head-avatar datasets have short or tied hair; loose strands off the
+    # silhouette are the hard case), tracking noise as a photometric tracker leaves. Its
+    # identity, look and performance are those of "hard" (same random draws).
     "default": dict(
-        max_yaw_deg=35.0, expression_scale=1.0, noise=1.0, wrinkles=1.0, strands=2500, levels=2
+        max_yaw_deg=35.0, expression_scale=1.0, wrinkles=1.0, strands=2500, levels=2,
+        light="soft", hair="shell", tracking_noise=CAPTURE_TRACKING_NOISE,
     ),
+    # The default subject of generator version 2: every condition strong.
     "hard": dict(
-        max_yaw_deg=35.0, expression_scale=1.3, noise=2.0, wrinkles=1.4, strands=5000, levels=2
+        max_yaw_deg=35.0, expression_scale=1.0, wrinkles=1.0, strands=2500, levels=2,
+        light="key", hair="strands", tracking_noise=1.0,
+    ),
+    "extreme": dict(
+        max_yaw_deg=35.0, expression_scale=1.3, wrinkles=1.4, strands=5000, levels=2,
+        light="key", hair="strands", tracking_noise=2.0,
+    ),
+}  # fmt: skip
+
+_KEY_DIRECTION = (0.45, 0.55, 0.7)
+LIGHTS = {
+    # A studio key light fixed in the world: a small source (0.06 rad) casting hard
+    # shadows of nose and jaw, with a strong specular, over a dim ambient.
+    "key": Light(
+        direction=_KEY_DIRECTION,
+        color=(1.05, 1.0, 0.95),
+        angular_radius=0.06,
+        ambient_up=(0.3, 0.31, 0.34),
+        ambient_down=(0.12, 0.1, 0.09),
+    ),
+    # Indoor footage: from the same side, a large source (0.2 rad: a 1 m window 2.5 m
+    # away) giving soft shadows, half the directional light, and twice the ambient (the
+    # room and sky). A larger source would need more samples: at 0.2 rad, 2 × 2 samples
+    # a pixel leave noise like the key's (RMS 0.018 against 6 × 6 samples, key 0.017;
+    # 0.35 rad leaves 0.024, mostly diffuse and specular varying over the source).
+    "soft": Light(
+        direction=_KEY_DIRECTION,
+        color=(0.52, 0.5, 0.48),
+        angular_radius=0.2,
+        ambient_up=(0.6, 0.61, 0.63),
+        ambient_down=(0.34, 0.32, 0.3),
+    ),
+    # Even light, the oracle: a uniform ambient and nothing directional, so every pixel
+    # shows its albedo whatever the pose (no shading, shadows or specular), at the mean
+    # exposure of the head under key and soft (0.78 and 0.76 of the albedo).
+    "flat": Light(
+        direction=(0.0, 0.0, 1.0),
+        color=(0.0, 0.0, 0.0),
+        angular_radius=0.0,
+        ambient_up=(0.77, 0.77, 0.77),
+        ambient_down=(0.77, 0.77, 0.77),
     ),
 }
-
-LIGHT = Light(
-    direction=(0.45, 0.55, 0.7),
-    color=(1.05, 1.0, 0.95),
-    angular_radius=0.06,
-    ambient_up=(0.3, 0.31, 0.34),
-    ambient_down=(0.12, 0.1, 0.09),
-)
 BACKGROUND = (1.0, 1.0, 1.0)
 
 
@@ -70,6 +127,10 @@ class SynthConfig:
     samples_per_side: int = 2
     edge_samples_per_side: int = 3
     test_last: int | None = None
+    # The conditions (see CONDITIONS); None takes the difficulty's.
+    light: str | None = None
+    hair: str | None = None
+    tracking_noise: float | None = None
 
     def __post_init__(self):
         if self.difficulty not in DIFFICULTIES:
@@ -80,9 +141,24 @@ class SynthConfig:
             raise ValueError(f"frames must be >= 2, got {self.frames}")
         if not 16 <= self.resolution <= 4096:
             raise ValueError(f"resolution must be in [16, 4096], got {self.resolution}")
+        if self.light not in (None, *LIGHTS):
+            raise ValueError(f"light must be one of {sorted(LIGHTS)}, got {self.light!r}")
+        if self.hair not in (None, *HAIR_MODES):
+            raise ValueError(f"hair must be one of {list(HAIR_MODES)}, got {self.hair!r}")
+        if self.tracking_noise is not None and not 0 <= self.tracking_noise < float("inf"):
+            raise ValueError(f"tracking_noise must be >= 0, got {self.tracking_noise}")
+
+    def resolved(self) -> SynthConfig:
+        """This config with the conditions left None taken from its difficulty."""
+        preset = DIFFICULTIES[self.difficulty]
+        given = {name: getattr(self, name) for name in CONDITIONS}
+        values = {name: preset[name] if v is None else v for name, v in given.items()}
+        return replace(self, **{**values, "tracking_noise": float(values["tracking_noise"])})
 
     def cache_key(self) -> str:
-        blob = json.dumps({"generator_version": GENERATOR_VERSION, **asdict(self)}, sort_keys=True)
+        """The same for configs that make the same subject (conditions resolved)."""
+        settings = asdict(self.resolved())
+        blob = json.dumps({"generator_version": GENERATOR_VERSION, **settings}, sort_keys=True)
         return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
@@ -120,6 +196,7 @@ def synthesize(
     from urhead.head.procedural import EXPRESSION_NAMES
 
     out = Path(out)
+    config = config.resolved()
     key = config.cache_key()
     meta_path = out / "synthetic.json"
     if meta_path.is_file():
@@ -142,6 +219,7 @@ def synthesize(
         levels=preset["levels"],
         hair_strands=preset["strands"],
         wrinkle_scale=preset["wrinkles"],
+        hair=config.hair,
     )
     perf = performance(
         rng,
@@ -151,9 +229,12 @@ def synthesize(
         max_yaw_deg=preset["max_yaw_deg"],
         expression_scale=preset["expression_scale"],
     )
-    shape_n, expr_n, pose_n, transl_n = tracking_noise(rng, perf, look.shape, preset["noise"])
+    tracked = tracking_noise(rng, perf, look.shape, config.tracking_noise)
+    shape_n, expr_n, pose_n, transl_n = tracked
     camera = subject_camera(config.resolution)
     tables = head.lbs_tables(torch.float32)
+    exact = (look.shape, perf.expr, perf.pose, perf.transl)
+    displacement = face_displacement(head, tables, camera, exact, tracked)
     renderer = _FrameRenderer(look, camera, config)
 
     def skin(t: int):
@@ -215,7 +296,8 @@ def synthesize(
             "fps": FPS,
             "head": f"procedural_head({HEAD_SEED}); also head.npz",
             "background": BACKGROUND,
-            "light": asdict(LIGHT),
+            "light": asdict(LIGHTS[config.light]),
+            "tracking_error": displacement,
             "triangles": renderer.triangle_count,
             "normals": "normals/*.png: OpenCV camera-space unit normals, see urhead.data.layout",
         }
@@ -233,6 +315,55 @@ def _lbs(tables, betas, pose, transl):
         **tables,
     )
     return out.verts[0].numpy(), out.rotations[0].numpy()
+
+
+def face_displacement(head, tables, camera: Camera, exact, tracked, chunk: int = 64) -> dict:
+    """What the tracking noise means in the image: the 2D displacement (pixels) of the face
+    vertices between the head skinned with the ``exact`` and with the ``tracked``
+    parameters, each (shape, expr (T, E), pose (T, 15), transl (T, 3)). Returns the mean
+    over vertices and frames, the worst frame's mean and the largest, at the camera's
+    resolution and scaled to 512² (displacements scale with the image side)."""
+    face = head.region_vertices("face")
+    frames = len(exact[1])
+    per_frame_mean, per_frame_max = [], []
+    for start in range(0, frames, chunk):
+        span = slice(start, min(start + chunk, frames))
+        uv_exact = _project_face(tables, camera, face, exact, span)
+        uv_tracked = _project_face(tables, camera, face, tracked, span)
+        distance = np.linalg.norm(uv_tracked - uv_exact, axis=-1)  # (frames, vertices)
+        per_frame_mean.append(distance.mean(1))
+        per_frame_max.append(distance.max(1))
+    frame_mean, frame_max = np.concatenate(per_frame_mean), np.concatenate(per_frame_max)
+    figures = {
+        "mean_px": float(frame_mean.mean()),
+        "worst_frame_mean_px": float(frame_mean.max()),
+        "max_px": float(frame_max.max()),
+    }
+    to_512 = 512 / camera.width
+    return {
+        "what": "2D displacement of the face vertices, tracked vs exact parameters",
+        "resolution": camera.width,
+        **{name: round(v, 4) for name, v in figures.items()},
+        **{f"{name}_at_512": round(v * to_512, 4) for name, v in figures.items()},
+    }
+
+
+def _project_face(tables, camera: Camera, face, params, span: slice) -> np.ndarray:
+    """(frames, K, 2) pixel positions of the ``face`` vertices skinned with ``params``
+    over the frames ``span``."""
+    from urhead.ops import lbs
+
+    shape, expr, pose, transl = params
+    expr, pose, transl = (np.ascontiguousarray(a[span], np.float32) for a in (expr, pose, transl))
+    betas = np.concatenate([np.broadcast_to(shape, (len(expr), len(shape))), expr], 1)
+    out = lbs(
+        torch.from_numpy(np.ascontiguousarray(betas, np.float32)),
+        torch.from_numpy(pose),
+        transl=torch.from_numpy(transl),
+        **tables,
+    )
+    uv, _ = camera.project(out.verts[:, face])
+    return uv.numpy()
 
 
 class _Scene(NamedTuple):
@@ -262,6 +393,9 @@ class _FrameRenderer:
         self.look = look
         self.camera = camera
         self.config = config
+        self.light = LIGHTS[config.light]
+        # A light without a directional part casts no shadows: skip the shadow rays.
+        self.shadows = max(self.light.color) > 0
         self.eye = camera.center.double().numpy()
         self.triangle_count = 0
         self._bvh: TriangleBvh | None = None
@@ -307,7 +441,8 @@ class _FrameRenderer:
             face_material=scene.face_material,
             materials=MATERIALS,
             decals=self.look.decals,
-            light=LIGHT,
+            light=self.light,
+            shadows=self.shadows,
             samples_per_side=self.config.samples_per_side,
             edge_samples_per_side=self.config.edge_samples_per_side,
             background=BACKGROUND,
@@ -403,7 +538,31 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--seed", type=int, default=defaults.seed, help="seed of identity, look and performance"
     )
-    p.add_argument("--difficulty", choices=sorted(DIFFICULTIES), default=defaults.difficulty)
+    p.add_argument(
+        "--difficulty",
+        choices=list(DIFFICULTIES),
+        default=defaults.difficulty,
+        help="preset of performance, look and conditions (default %(default)s; hard is "
+        "generator version 2's default)",
+    )
+    p.add_argument(
+        "--light",
+        choices=list(LIGHTS),
+        help="key: small world-fixed key light; soft: large source, more ambient; "
+        f"flat: even, no shading. Default: {_preset_values('light')}",
+    )
+    p.add_argument(
+        "--hair",
+        choices=list(HAIR_MODES),
+        help="strands: volume + strands; shell: the volume as a surface; none: painted on "
+        f"the scalp. Default: {_preset_values('hair')}",
+    )
+    p.add_argument(
+        "--tracking-noise",
+        type=float,
+        help="scale of the noise on the exported FLAME parameters (0: exact). Default: "
+        f"{_preset_values('tracking_noise')}",
+    )
     p.add_argument(
         "--samples", type=int, default=defaults.samples_per_side, help="samples per pixel side"
     )
@@ -425,7 +584,24 @@ def add_parser(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    config = SynthConfig(
+    config = config_from_args(args)
+    before = _key_at(Path(args.out))
+    out = synthesize(args.out, config, progress=not args.quiet, force=args.force)
+    state = "reused (cached)" if before == config.cache_key() else "wrote"
+    size = f"{config.resolution}×{config.resolution}"
+    print(
+        f"{state} {out}: {config.frames} frames at {size}, difficulty {config.difficulty} "
+        f"(light {config.light}, hair {config.hair}, tracking noise {config.tracking_noise:g})"
+    )
+    if args.contact_sheet:
+        print(f"wrote {contact_sheet(out, args.contact_sheet)}")
+    return 0
+
+
+def config_from_args(args: argparse.Namespace) -> SynthConfig:
+    """The resolved config of ``urhead synth`` arguments: given conditions override the
+    difficulty's."""
+    return SynthConfig(
         frames=args.frames,
         resolution=args.resolution,
         seed=args.seed,
@@ -433,15 +609,15 @@ def run(args: argparse.Namespace) -> int:
         samples_per_side=args.samples,
         edge_samples_per_side=args.edge_samples,
         test_last=args.test_last,
-    )
-    before = _key_at(Path(args.out))
-    out = synthesize(args.out, config, progress=not args.quiet, force=args.force)
-    state = "reused (cached)" if before == config.cache_key() else "wrote"
-    size = f"{config.resolution}×{config.resolution}"
-    print(f"{state} {out}: {config.frames} frames at {size}, difficulty {config.difficulty}")
-    if args.contact_sheet:
-        print(f"wrote {contact_sheet(out, args.contact_sheet)}")
-    return 0
+        light=args.light,
+        hair=args.hair,
+        tracking_noise=args.tracking_noise,
+    ).resolved()
+
+
+def _preset_values(condition: str) -> str:
+    """'easy: key, default: soft, ...': a condition's value in each difficulty, for help."""
+    return ", ".join(f"{name}: {preset[condition]}" for name, preset in DIFFICULTIES.items())
 
 
 def _key_at(out: Path):
@@ -452,10 +628,14 @@ def _key_at(out: Path):
 
 
 __all__ = [
+    "CONDITIONS",
     "DIFFICULTIES",
     "GENERATOR_VERSION",
+    "LIGHTS",
     "SynthConfig",
+    "config_from_args",
     "contact_sheet",
+    "face_displacement",
     "subject_camera",
     "synthesize",
 ]
