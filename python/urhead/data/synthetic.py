@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from urhead.camera import Camera
+from urhead.data.background import parse_background
 from urhead.data.subdivision import vertex_normals
 from urhead.data.synth_motion import FPS, performance, tracking_noise
 from urhead.data.synth_scene import MATERIALS, Strands, SubjectLook, build_look
@@ -70,6 +71,8 @@ class SynthConfig:
     samples_per_side: int = 2
     edge_samples_per_side: int = 3
     test_last: int | None = None
+    background: tuple[float, float, float] = BACKGROUND
+    """RGB in [0, 1] the frames are composited on."""
 
     def __post_init__(self):
         if self.difficulty not in DIFFICULTIES:
@@ -82,7 +85,10 @@ class SynthConfig:
             raise ValueError(f"resolution must be in [16, 4096], got {self.resolution}")
 
     def cache_key(self) -> str:
-        blob = json.dumps({"generator_version": GENERATOR_VERSION, **asdict(self)}, sort_keys=True)
+        fields = asdict(self)
+        if self.background == BACKGROUND:  # white subjects keep the keys they had before
+            del fields["background"]
+        blob = json.dumps({"generator_version": GENERATOR_VERSION, **fields}, sort_keys=True)
         return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
@@ -214,7 +220,7 @@ def synthesize(
             "difficulty": preset,
             "fps": FPS,
             "head": f"procedural_head({HEAD_SEED}); also head.npz",
-            "background": BACKGROUND,
+            "background": config.background,
             "light": asdict(LIGHT),
             "triangles": renderer.triangle_count,
             "normals": "normals/*.png: OpenCV camera-space unit normals, see urhead.data.layout",
@@ -310,7 +316,7 @@ class _FrameRenderer:
             light=LIGHT,
             samples_per_side=self.config.samples_per_side,
             edge_samples_per_side=self.config.edge_samples_per_side,
-            background=BACKGROUND,
+            background=self.config.background,
             seed=self.config.seed * 100003 + t,
             bvh=self._bvh,
             centre_hits=False,
@@ -416,6 +422,9 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--test-last", type=int, default=None, help="hold out the last N frames (default 30 %%)"
     )
+    p.add_argument(
+        "--background", default="white", help="background colour: white, black or R,G,B (0-255)"
+    )
     p.add_argument("--contact-sheet", help="also write a grid of frames to this PNG")
     p.add_argument(
         "--force", action="store_true", help="replace an existing folder that is not a subject"
@@ -433,6 +442,7 @@ def run(args: argparse.Namespace) -> int:
         samples_per_side=args.samples,
         edge_samples_per_side=args.edge_samples,
         test_last=args.test_last,
+        background=parse_background(args.background),
     )
     before = _key_at(Path(args.out))
     out = synthesize(args.out, config, progress=not args.quiet, force=args.force)
