@@ -6,9 +6,10 @@ it on the held-out frames.
 
 Writes into DIR (default ``outputs/fit_subject``): ``avatar/`` (the avatar directory),
 ``metrics.json``, ``psnr_vs_time.csv`` / ``.png`` (held-out PSNR against training time) and
-``test_frames.png`` (ground truth | avatar | mesh branch alone | error ×4, held-out frames).
-On the built-in subject ``metrics.json`` also has ``psnr_true_flame``: the held-out PSNR
-with the subject's exact FLAME parameters instead of the noisy tracked ones.
+``test_frames.png`` (held-out frames, labelled: ground truth | avatar with the tracked FLAME
+parameters | avatar after test-time refinement | mesh branch alone | error ×4).
+On the built-in subject ``metrics.json`` also has ``psnr_true_flame`` (``_full``): the
+held-out PSNR with the subject's exact FLAME parameters instead of the tracked ones.
 With ``--subject`` it fits that subject instead of making the built-in one.
 """
 
@@ -59,11 +60,13 @@ def main() -> None:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     with logging_redirect_tqdm():  # log lines above the progress bar, not through it
         result = Trainer(subject, procedural_head(0), config, args.out).run(resume=args.resume)
-    write_test_strip(result.avatar, subject, args.out / "test_frames.png")
+    write_test_strip(result.avatar, subject, args.out / "test_frames.png", config.refine_steps)
     metrics = dict(result.metrics, total_seconds=round(time.perf_counter() - start, 1))
     truth = subject_dir / "synthetic_ground_truth.npz"
     if truth.is_file():
-        metrics["psnr_true_flame"] = psnr_with_true_flame(result.avatar, subject, truth)
+        oracle = true_flame_scores(result.avatar, subject, truth)
+        metrics["psnr_true_flame"] = oracle.psnr
+        metrics["psnr_true_flame_full"] = oracle.psnr_full
     tmp = args.out / "metrics.json.tmp"
     tmp.write_text(json.dumps(metrics, indent=2))
     tmp.replace(args.out / "metrics.json")
@@ -71,45 +74,57 @@ def main() -> None:
     print(f"wrote {args.out}/avatar, metrics.json, psnr_vs_time.png, test_frames.png")
 
 
-@torch.no_grad()
-def psnr_with_true_flame(avatar, subject, truth_path: Path) -> float:
-    """Held-out PSNR when the avatar is driven by the synthetic subject's exact FLAME
-    parameters instead of the noisy tracked ones: the gap to ``psnr`` is what tracking
-    noise costs (a diagnostic only a synthetic subject allows)."""
-    from urhead.losses import psnr
+def true_flame_scores(avatar, subject, truth_path: Path):
+    """Held-out scores when the avatar is driven by the synthetic subject's exact FLAME
+    parameters instead of the tracked ones: the oracle for tracking error (a diagnostic
+    only a synthetic subject allows)."""
+    from urhead.eval import evaluate_frames
     from urhead.model import FlameParams
 
     truth = np.load(truth_path)
-    frames = subject.test if len(subject.test) else subject.val
-    scores = []
-    for frame in frames:
-        t = frame.timestep
-        num_expr = avatar.num_expr
-        params = FlameParams(
-            torch.from_numpy(truth["expr"][t, :num_expr].copy()),
-            torch.from_numpy(truth["pose"][t].copy()),
-            torch.from_numpy(truth["transl"][t].copy()),
+    frames = list(subject.test if len(subject.test) else subject.val)
+    e = avatar.num_expr
+    params = [
+        FlameParams(
+            torch.from_numpy(truth["expr"][f.timestep, :e].copy()),
+            torch.from_numpy(truth["pose"][f.timestep].copy()),
+            torch.from_numpy(truth["transl"][f.timestep].copy()),
         )
-        image = avatar.render(params, frame.camera).image.clamp(0, 1)
-        scores.append(float(psnr(image, frame.image, frame.mask)))
-    return sum(scores) / len(scores)
+        for f in frames
+    ]
+    return evaluate_frames(avatar, frames, params=params, mesh_only=False)
 
 
-@torch.no_grad()
-def write_test_strip(avatar, subject, path: Path, count: int = 4) -> None:
-    """Rows of held-out frames: ground truth | avatar | mesh branch | error ×4."""
+def write_test_strip(avatar, subject, path: Path, refine_steps: int, count: int = 4) -> None:
+    """Rows of held-out frames, labelled: ground truth | avatar (tracked FLAME) | avatar
+    (refined FLAME) | mesh branch (tracked) | error ×4 (refined)."""
     import cv2
+
+    from urhead.eval import RefineSettings, refine_params
 
     frames = subject.test if len(subject.test) else subject.val
     picks = np.linspace(0, len(frames) - 1, count).round().astype(int)
+    settings = RefineSettings(steps=refine_steps)
     rows = []
     for i in picks:
         frame = frames[int(i)]
-        out = avatar.render(frame_params(avatar, frame), frame.camera)
-        error = ((out.image - frame.image).abs() * 4).clamp(0, 1)
-        row = torch.cat([frame.image, out.image.clamp(0, 1), out.mesh.image.clamp(0, 1), error], 1)
-        rows.append(row)
-    image = (torch.cat(rows, 0).numpy() * 255).round().astype(np.uint8)
+        tracked = frame_params(avatar, frame)
+        refined = refine_params(avatar, frame, tracked, settings)
+        with torch.no_grad():
+            out = avatar.render(tracked, frame.camera)
+            better = avatar.render(refined, frame.camera).image.clamp(0, 1)
+        error = ((better - frame.image).abs() * 4).clamp(0, 1)
+        tiles = [frame.image, out.image.clamp(0, 1), better, out.mesh.image.clamp(0, 1), error]
+        rows.append(torch.cat(tiles, 1))
+    image = np.ascontiguousarray((torch.cat(rows, 0).numpy() * 255).round().astype(np.uint8))
+    tile = frames[0].camera.width
+    labels = ["ground truth", "avatar, tracked FLAME", "avatar, refined FLAME", "mesh branch"]
+    labels.append("error x4 (refined)")
+    scale = max(tile / 512, 0.35)
+    for k, label in enumerate(labels):
+        org = (k * tile + int(8 * scale), int(24 * scale))
+        cv2.putText(image, label, org, cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale, (0, 0, 0), 3)
+        cv2.putText(image, label, org, cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale, (255, 255, 255), 1)
     tmp = path.with_name(path.name + ".tmp.png")
     cv2.imwrite(str(tmp), image[..., ::-1])
     tmp.replace(path)

@@ -2,18 +2,23 @@
 
 A FLAME-sized mesh (5023 vertices, 9976 faces: a capped tube for the head, open at the
 neck, plus two closed eyeballs), FLAME's joints and blendshape layout, pickled the way the
-official files are: 2020-style with chumpy objects and ``scipy.sparse.csc.csc_matrix``
-under its old module path (the classes are faked in ``sys.modules`` while pickling, so
-neither chumpy nor an old scipy is needed), 2023-style with plain arrays and a modern
-sparse matrix. Also a matching ``head_template_mesh.obj``.
+official files are: 2020-style by "Python 2" (protocol 2, Python 2 strings and module
+names) with chumpy objects carrying chumpy's whole instance state and
+``scipy.sparse.csc.csc_matrix`` under its old module path, 2023-style by Python 3 with
+chumpy objects and a modern sparse matrix. The classes are stand-ins registered in
+``sys.modules`` only while pickling, so neither chumpy nor an old scipy is needed. Also a
+matching ``head_template_mesh.obj``.
 """
 
 from __future__ import annotations
 
+import io
 import pickle
+import struct
 import sys
 import types
 from contextlib import contextmanager
+from typing import ClassVar
 
 import numpy as np
 import scipy.sparse
@@ -144,9 +149,70 @@ def flame_like_model(seed: int = 0) -> dict:
     }
 
 
-def _fake_class(module: str, name: str):
-    cls = type(name, (), {"__module__": module, "__qualname__": name})
-    return cls
+def _stand_in(module: str, name: str, getstate=None) -> type:
+    """A class that pickles under ``module.name`` (importable only inside
+    :func:`_fake_modules`)."""
+    body = {"__module__": module, "__qualname__": name}
+    if getstate is not None:
+        body["__getstate__"] = getstate
+    return type(name, (), body)
+
+
+def chumpy_class(module: str = "chumpy.ch", name: str = "Ch") -> type:
+    """A stand-in for a chumpy class whose ``__getstate__`` is chumpy's: the instance dict
+    less its weak-reference caches ``_parents`` and ``_cache``."""
+
+    def getstate(self):
+        return {k: v for k, v in self.__dict__.items() if k not in ("_parents", "_cache")}
+
+    return _stand_in(module, name, getstate)
+
+
+def chumpy_object(cls: type, **terms):
+    """An instance of a :func:`chumpy_class` with the bookkeeping chumpy's ``Ch.__new__``
+    gives every object (a set of dirty terms, the iteration marker, the ``depends_on``
+    table, the dense/sparse flags, the weak-reference caches) plus its terms (``x`` for a
+    plain ``Ch``)."""
+    obj = cls.__new__(cls)
+    obj.__dict__.update(
+        _dirty_vars=set(terms),
+        _itr=None,
+        _parents={},
+        _cache={"r": None, "drs": {}},
+        _depends_on_deps={},
+        _make_dense=False,
+        _make_sparse=False,
+        **terms,
+    )
+    return obj
+
+
+class Python2Pickler(pickle._Pickler):
+    """Protocol 2 as Python 2 wrote it: text and bytes alike as Python 2 ``str``
+    (SHORT_BINSTRING / BINSTRING; no unicode opcodes, no ``_codecs.encode``), builtins
+    under ``__builtin__`` and ``copy_reg`` (pickle's ``fix_imports``).
+    :func:`python2_pickle` also renames numpy's module to Python 2's
+    ``numpy.core.multiarray``."""
+
+    dispatch: ClassVar[dict] = dict(pickle._Pickler.dispatch)
+
+    def save_python2_str(self, obj: bytes | str) -> None:
+        raw = obj.encode("latin-1") if isinstance(obj, str) else obj
+        n = len(raw)
+        if n < 256:
+            self.write(pickle.SHORT_BINSTRING + bytes([n]) + raw)
+        else:
+            self.write(pickle.BINSTRING + struct.pack("<i", n) + raw)
+        self.memoize(obj)
+
+    dispatch[bytes] = save_python2_str
+    dispatch[str] = save_python2_str
+
+
+def python2_pickle(obj) -> bytes:
+    buffer = io.BytesIO()
+    Python2Pickler(buffer, protocol=2, fix_imports=True).dump(obj)
+    return buffer.getvalue().replace(b"cnumpy._core.multiarray\n", b"cnumpy.core.multiarray\n")
 
 
 @contextmanager
@@ -170,40 +236,58 @@ def _fake_modules(classes):
                 sys.modules[name] = old
 
 
+def pickle_with_stand_ins(obj, classes, python2: bool = True, protocol: int = 2) -> bytes:
+    """``obj`` pickled while the stand-in ``classes`` are importable under their names:
+    ``python2`` as Python 2 wrote it, else by Python 3 with ``protocol``."""
+    with _fake_modules(classes):
+        return python2_pickle(obj) if python2 else pickle.dumps(obj, protocol=protocol)
+
+
 def write_flame2020_pickle(path, model: dict) -> None:
-    """As FLAME 2020 stores it: chumpy ``Ch`` objects (array in the state under ``x``) for
-    the template and blendshapes, ``scipy.sparse.csc.csc_matrix`` (old path, old state
-    keys) for the regressor, protocol 2."""
-    Ch = _fake_class("chumpy.ch", "Ch")
-    Csc = _fake_class("scipy.sparse.csc", "csc_matrix")
+    """As FLAME 2020's ``generic_model.pkl`` is stored: written by Python 2, protocol 2,
+    latin-1 strings; chumpy ``Ch`` objects with their whole instance state for the
+    template and blendshapes; ``scipy.sparse.csc.csc_matrix`` (old path, old instance
+    state) for the regressor."""
+    Ch = chumpy_class()
+    Csc = _stand_in("scipy.sparse.csc", "csc_matrix")
     out = dict(model)
     for key in ("v_template", "shapedirs", "posedirs"):
-        ch = Ch()
-        ch.__dict__.update({"x": np.asarray(model[key]), "_depends_on_deps": {}, "_cache": {}})
-        out[key] = ch
-    reg = scipy.sparse.csc_matrix(model["J_regressor"])
-    sparse = Csc()
-    sparse.__dict__.update(
-        {
-            "_shape": reg.shape,
-            "maxprint": 50,
-            "format": "csc",
-            "data": reg.data,
-            "indices": reg.indices,
-            "indptr": reg.indptr,
-        }
-    )
-    out["J_regressor"] = sparse
-    with _fake_modules([Ch, Csc]), open(path, "wb") as f:
-        pickle.dump(out, f, protocol=2)
+        if key in model:
+            out[key] = chumpy_object(Ch, x=np.asarray(model[key]))
+    out["J_regressor"] = _old_csc(Csc, model["J_regressor"])
+    blob = pickle_with_stand_ins(out, [Ch, Csc], python2=True)
+    with open(path, "wb") as f:
+        f.write(blob)
 
 
 def write_flame2023_pickle(path, model: dict) -> None:
-    """As flame2023.pkl: plain arrays and a modern scipy sparse matrix."""
+    """As ``flame2023.pkl``: chumpy ``Ch`` objects with their whole state, written by
+    Python 3 (protocol 4: sets as opcodes, str keys), and a modern scipy sparse matrix."""
+    Ch = chumpy_class()
     out = dict(model)
+    for key in ("v_template", "shapedirs", "posedirs"):
+        if key in model:
+            out[key] = chumpy_object(Ch, x=np.asarray(model[key]))
     out["J_regressor"] = scipy.sparse.csc_matrix(model["J_regressor"])
+    blob = pickle_with_stand_ins(out, [Ch], python2=False, protocol=4)
     with open(path, "wb") as f:
-        pickle.dump(out, f, protocol=4)
+        f.write(blob)
+
+
+def _old_csc(cls: type, matrix):
+    """An instance of an old-scipy ``csc_matrix`` stand-in with that class's state."""
+    reg = scipy.sparse.csc_matrix(matrix)
+    sparse = cls.__new__(cls)
+    sparse.__dict__.update(
+        _shape=reg.shape,
+        maxprint=50,
+        format="csc",
+        data=reg.data,
+        indices=reg.indices,
+        indptr=reg.indptr,
+        has_sorted_indices=True,
+    )
+    return sparse
 
 
 def write_template_obj(path) -> None:

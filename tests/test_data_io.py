@@ -67,10 +67,11 @@ def test_round_trip_reproduces_pixels_masks_flame_and_normals(tmp_path):
     subject = load_subject(root)
     assert (subject.width, subject.height) == (W, H)
     assert subject.has_normals
-    # VHAP's 70/30 split of timesteps; val repeats test.
+    # VHAP's split of one camera: the first ceil(0.7·T) timesteps train, the rest test,
+    # val empty.
     assert subject.train.timesteps == list(range(7))
     assert subject.test.timesteps == [7, 8, 9]
-    assert subject.val.timesteps == [7, 8, 9]
+    assert len(subject.val) == 0
     for frame in [*subject.train, *subject.test]:
         image, mask, flame, normals = written[frame.timestep]
         assert frame.image.dtype == torch.float32 and frame.image.shape == (H, W, 3)

@@ -3,15 +3,21 @@ layout, the teeth extension and mouth plate, masks, and the convert-flame comman
 
 from __future__ import annotations
 
+import io
 import pickle
+import pickletools
 
 import numpy as np
 import pytest
+import scipy.sparse
 import torch
 
 from flame_fixtures import (
+    chumpy_class,
+    chumpy_object,
     flame_like_mesh,
     flame_like_model,
+    pickle_with_stand_ins,
     write_flame2020_pickle,
     write_flame2023_pickle,
     write_template_obj,
@@ -19,7 +25,7 @@ from flame_fixtures import (
 from urhead.cli import main
 from urhead.errors import InvalidArgumentError, ShapeError
 from urhead.head import TeethConfig, add_teeth, load_flame, load_head
-from urhead.head.pickle_compat import load_flame_pickle
+from urhead.head.pickle_compat import ChumpyStub, FlameUnpickler, load_flame_pickle
 from urhead.head.teeth import ROW_ORDER, teeth_rest_geometry
 from urhead.ops._reference import axis_angle_to_matrix
 
@@ -44,17 +50,151 @@ def test_pickle_round_trip_without_chumpy(files, name):
     assert raw["bs_style"] == "lbs"
 
 
-def test_2020_pickle_really_uses_the_old_paths(files):
+def _globals_and_opcodes(blob: bytes) -> tuple[set, set]:
+    names, ops = set(), set()
+    for op, arg, _ in pickletools.genops(blob):
+        ops.add(op.name)
+        if op.name == "GLOBAL":
+            names.add(arg)
+    return names, ops
+
+
+def test_2020_pickle_is_written_the_way_python2_chumpy_writes_it(files):
     d, _ = files
     blob = (d / "generic_model.pkl").read_bytes()
-    assert b"chumpy.ch" in blob and b"scipy.sparse.csc\n" in blob
+    names, ops = _globals_and_opcodes(blob)
+    assert blob[:2] == b"\x80\x02"  # protocol 2
+    assert {
+        "chumpy.ch Ch",
+        "scipy.sparse.csc csc_matrix",
+        "__builtin__ set",
+        "numpy.core.multiarray _reconstruct",
+    } <= names
+    assert "_codecs encode" not in names and "BINUNICODE" not in ops  # Python 2 str only
+    assert {"SHORT_BINSTRING", "BINSTRING", "NEWOBJ", "BUILD", "NEWFALSE"} <= ops
 
 
-def test_unpickler_refuses_other_classes(tmp_path):
+def test_chumpy_state_is_read_whole():
+    """Everything chumpy pickles of a Ch (a set, a dict, None, bools) comes through."""
+    Ch = chumpy_class()
+    obj = chumpy_object(Ch, x=np.arange(3.0))
+    obj._depends_on_deps = {"r": {"deps": ["x"], "value": None, "out_of_date": True}}
+    blob = pickle_with_stand_ins({"ch": obj}, [Ch])
+    stub = FlameUnpickler(io.BytesIO(blob)).load()["ch"]
+    assert isinstance(stub, ChumpyStub) and stub.chumpy_class == "chumpy.ch.Ch"
+    assert stub.state["_dirty_vars"] == {"x"}
+    assert stub.state["_itr"] is None
+    assert stub.state["_depends_on_deps"] == {
+        "r": {"deps": ["x"], "value": None, "out_of_date": True}
+    }
+    assert stub.state["_make_dense"] is False and stub.state["_make_sparse"] is False
+    assert "_parents" not in stub.state and "_cache" not in stub.state
+    np.testing.assert_array_equal(stub.to_array(), np.arange(3.0))
+
+
+@pytest.mark.parametrize(
+    "value, protocol, fix_imports, global_name",
+    [
+        ({"a", "b"}, 2, True, "__builtin__ set"),  # Python 2's name under protocol 2
+        ({"a", "b"}, 2, False, "builtins set"),
+        (frozenset({1, 2}), 2, True, "__builtin__ frozenset"),
+        (complex(1, 2), 2, True, "__builtin__ complex"),
+        ({"a", "b"}, 4, True, None),  # protocol 4: an opcode, no global
+        (frozenset({1, 2}), 4, True, None),
+    ],
+)
+def test_data_only_builtins_load(value, protocol, fix_imports, global_name):
+    blob = pickle.dumps({"v": value}, protocol=protocol, fix_imports=fix_imports)
+    names, _ = _globals_and_opcodes(blob)
+    assert names == ({global_name} if global_name else set())
+    assert FlameUnpickler(io.BytesIO(blob)).load() == {"v": value}
+
+
+def _calling_pickle(module: str, name: str, argument: str) -> bytes:
+    """A protocol-2 pickle that calls ``module.name(argument)`` when loaded."""
+    arg = argument.encode()
+    return (
+        b"\x80\x02c" + module.encode() + b"\n" + name.encode() + b"\n"
+        + b"X" + len(arg).to_bytes(4, "little") + arg
+        + b"\x85R."
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "module, name, shown",
+    [
+        ("os", "system", "os.system"),
+        ("posix", "system", "posix.system"),
+        ("builtins", "eval", "builtins.eval"),
+        ("__builtin__", "eval", "builtins.eval"),
+        ("__builtin__", "getattr", "builtins.getattr"),
+        ("__builtin__", "__import__", "builtins.__import__"),
+        ("builtins", "exec", "builtins.exec"),
+        ("subprocess", "call", "subprocess.call"),
+        ("copy_reg", "_reduce_ex", "copyreg._reduce_ex"),
+        ("numpy", "load", "numpy.load"),
+    ],
+)
+def test_code_running_globals_are_refused(tmp_path, module, name, shown):
+    marker = tmp_path / "ran"
+    command = f"open({str(marker)!r}, 'w')" if name in ("eval", "exec") else f"touch {marker}"
     path = tmp_path / "evil.pkl"
-    path.write_bytes(pickle.dumps({"v_template": np.zeros(3), "x": print}, protocol=2))
-    with pytest.raises(pickle.UnpicklingError, match=r"builtins\.print"):
+    path.write_bytes(_calling_pickle(module, name, command))
+    with pytest.raises(pickle.UnpicklingError, match=rf"refusing to load {shown}\b"):
         load_flame_pickle(path)
+    assert not marker.exists()
+    with pytest.raises(pickle.UnpicklingError, match=r"builtins\.print"):
+        FlameUnpickler(io.BytesIO(pickle.dumps({"x": print}, protocol=2))).load()
+
+
+def test_protocol1_chumpy_object_via_copy_reg_reconstructor():
+    Ch = chumpy_class()
+    blob = pickle_with_stand_ins(
+        {"x": chumpy_object(Ch, x=np.ones(2))}, [Ch], python2=False, protocol=1
+    )
+    names, _ = _globals_and_opcodes(blob)
+    assert {"copy_reg _reconstructor", "__builtin__ object"} <= names
+    loaded = FlameUnpickler(io.BytesIO(blob)).load()["x"]
+    np.testing.assert_array_equal(loaded.to_array(), np.ones(2))
+    assert loaded.state["_dirty_vars"] == {"x"}
+
+
+def test_chumpy_expression_without_an_array(files, tmp_path):
+    """A derived chumpy object (no ``x``) is kept as a stub where FLAME does not need it
+    and named where it does."""
+    _, model = files
+    Ch, Select = chumpy_class(), chumpy_class("chumpy.reordering", "Select")
+    base = chumpy_object(Ch, x=np.asarray(model["v_template"]))
+    derived = chumpy_object(Select, a=base, idxs=np.arange(6), preferred_shape=(2, 3))
+    path = tmp_path / "extra.pkl"
+    path.write_bytes(pickle_with_stand_ins(dict(model, J=derived), [Ch, Select]))
+    raw = load_flame_pickle(path)
+    assert isinstance(raw["J"], ChumpyStub) and raw["J"].chumpy_class == "chumpy.reordering.Select"
+    assert load_flame(path, teeth=False).num_vertices == 5023
+    path.write_bytes(pickle_with_stand_ins(dict(model, v_template=derived), [Ch, Select]))
+    with pytest.raises(InvalidArgumentError, match=r"'v_template' is a chumpy\.reordering\.Select"):
+        load_flame(path, teeth=False)
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (lambda s: s.update(indptr=s["indptr"][::-1].copy()), "indptr"),
+        (lambda s: s.update(indices=s["indices"] + 10_000), "indices outside"),
+        (lambda s: s.update(data=s["data"][:-1]), "values"),
+        (lambda s: s.update(_shape=(5, -1)), "shape"),
+    ],
+)
+def test_corrupt_sparse_parts_are_refused_before_scipy_sees_them(change, message):
+    from urhead.head.pickle_compat import SparseStub
+
+    reg = scipy.sparse.csc_matrix(np.eye(5, 7))
+    stub = SparseStub()
+    state = {"_shape": reg.shape, "data": reg.data, "indices": reg.indices, "indptr": reg.indptr}
+    change(state)
+    stub.__setstate__(state)
+    with pytest.raises(pickle.UnpicklingError, match=message):
+        stub.to_scipy()
 
 
 @pytest.mark.parametrize("name", ["generic_model.pkl", "flame2023.pkl"])

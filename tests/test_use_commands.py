@@ -14,7 +14,7 @@ import torch
 
 from urhead.cli import main
 from urhead.data import load_subject
-from urhead.eval import evaluate_frames
+from urhead.eval import RefineSettings, evaluate_frames
 from urhead.model import load_avatar
 from urhead.model.avatar import POSE_SIZE
 from urhead.use.lpips import VARIANTS, load_lpips
@@ -42,11 +42,14 @@ def test_eval_matches_evaluate_frames(use, tmp_path, capsys):
     out = tmp_path / "eval.json"
     assert main(["eval", str(use.avatar_dir), "--json", str(out)]) == 0
     printed = capsys.readouterr().out
-    assert "LPIPS-alex skipped" in printed and "PSNR (dB)" in printed
+    assert "LPIPS-alex skipped" in printed and "PSNR in mask (dB)" in printed
+    assert "PSNR full image (dB)" in printed and "off (--refine-flame)" in printed
     result = json.loads(out.read_text())
     subject = load_subject(use.subject_dir)
     reference = evaluate_frames(load_avatar(use.avatar_dir), list(subject.test))
     assert result["psnr"] == pytest.approx(reference.psnr, abs=1e-12)
+    assert result["psnr_full"] == pytest.approx(reference.psnr_full, abs=1e-12)
+    assert result["psnr_refined"] is None and result["psnr_refined_full"] is None
     assert result["ssim"] == pytest.approx(reference.ssim, abs=1e-12)
     assert result["psnr_mesh_only"] == pytest.approx(reference.psnr_mesh_only, abs=1e-12)
     assert result["per_frame"]["psnr"] == pytest.approx(list(reference.per_frame_psnr), abs=1e-12)
@@ -75,6 +78,24 @@ def test_eval_matches_evaluate_frames(use, tmp_path, capsys):
     assert result["temporal_error_change_var"] >= 0
     assert result["render_fps"] > 0
     assert result["num_gaussians"] == 300
+
+
+def test_eval_refine_flame_reports_refined_scores_like_evaluate_frames(use, tmp_path):
+    out = tmp_path / "eval.json"
+    argv = ["eval", str(use.avatar_dir), "--json", str(out), "--refine-flame"]
+    assert main([*argv, "--refine-steps", "5"]) == 0
+    result = json.loads(out.read_text())
+    subject = load_subject(use.subject_dir)
+    reference = evaluate_frames(
+        load_avatar(use.avatar_dir), list(subject.test), refine=RefineSettings(steps=5)
+    )
+    assert result["refine_steps"] == 5
+    for key in ("psnr_refined", "psnr_refined_full", "ssim_refined"):
+        assert result[key] == pytest.approx(getattr(reference, key), abs=1e-9), key
+    # Refinement keeps the state of lowest loss it scored (the tracked one included); the
+    # loss is L1 + SSIM, not MSE, so PSNR may differ by a hair, never by more.
+    assert result["psnr_refined_full"] >= result["psnr_full"] - 0.05
+    assert len(result["per_frame"]["psnr_refined"]) == result["frames"]
 
 
 def write_random_lpips_weights(folder, seed=0):

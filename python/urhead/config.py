@@ -13,6 +13,7 @@ import typing
 from dataclasses import dataclass, field, fields, replace
 from typing import Any, Literal
 
+from urhead.data.background import parse_background
 from urhead.errors import InvalidArgumentError
 
 
@@ -175,6 +176,12 @@ class FitConfig:
         "frozen avatar, reported as psnr_refined beside psnr (0 = none; ours)",
     )
     seed: int = option(0, "random seed")
+    background: str = option(
+        "auto",
+        "colour the subject's images are composited on: white, black or R,G,B (0-255); "
+        "auto = detected from the pixels outside the masks. A colour the data contradicts "
+        "is an error",
+    )
 
     def __post_init__(self):
         checks = [
@@ -199,6 +206,8 @@ class FitConfig:
         for name, ok in checks:
             if not ok:
                 raise InvalidArgumentError(f"{name} is out of range: {getattr(self, name)!r}")
+        if self.background != "auto":
+            parse_background(self.background)
         rates = [
             f.name
             for f in fields(self)

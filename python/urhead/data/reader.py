@@ -195,17 +195,22 @@ def load_subject(
     Args:
         root: the subject folder (with ``transforms*.json``, ``images/``, ``fg_masks/``,
             ``flame_param/``, optionally ``normals/``).
-        test_last: None to take the splits from ``transforms_{train,val,test}.json``;
-            N > 0 to split ``transforms.json`` by time instead: the last N timesteps are
-            the test set, the rest the training set, ``val`` is empty (the benchmark
-            protocol of the paper family, N = 350).
+        test_last: None to take the splits from ``transforms_{train,val,test}.json``
+            as VHAP's exporter writes them: monocular, ``val`` is empty (its file lists
+            the training timesteps but no frames); multi-view, ``val`` is one held-out
+            camera over the training timesteps and ``test`` every camera over the later
+            timesteps. N > 0 to split ``transforms.json`` by time instead: the last N
+            timesteps are the test set, the rest the training set, ``val`` is empty (the
+            benchmark protocol of the paper family, N = 350).
         cache_size: how many decoded frames to keep (LRU).
 
     Cameras come from each frame's OpenGL camera-to-world ``transform_matrix`` and its
     ``fl_x, fl_y, cx, cy, w, h`` (the top-level values when a frame has none), converted to
-    OpenCV world-to-camera. Raises :class:`~urhead.data.DatasetError` (a ``ValueError``;
-    :class:`~urhead.data.MissingFileError` is also a ``FileNotFoundError``) naming the
-    file at fault.
+    OpenCV world-to-camera. A split file with frames must list exactly their timesteps and
+    cameras in ``timestep_indices`` / ``camera_indices``; a split without frames is taken
+    whatever it lists; no ``val`` or ``test`` frame may also be a training frame. Raises
+    :class:`~urhead.data.DatasetError` (a ``ValueError``; :class:`~urhead.data.MissingFileError`
+    is also a ``FileNotFoundError``) naming the file at fault.
     """
     root = Path(root)
     if not root.is_dir():
@@ -224,6 +229,7 @@ def load_subject(
             name: _read_transforms(root, root / file, cameras) if (root / file).is_file() else []
             for name, file in SPLIT_FILES.items()
         }
+        _check_held_out(root, splits)
     else:
         if isinstance(test_last, bool) or not isinstance(test_last, int) or test_last < 1:
             raise ValueError(f"test_last must be a positive int or None, got {test_last!r}")
@@ -269,6 +275,7 @@ def _read_transforms(root: Path, path: Path, cameras: dict) -> list[FrameRecord]
         raise DatasetError(path, f"missing top-level keys {missing}")
     if not isinstance(meta["frames"], list):
         raise DatasetError(path, "'frames' must be a list")
+    listed = {key: _index_list(path, meta, key) for key in ("timestep_indices", "camera_indices")}
     records, seen = [], set()
     for i, frame in enumerate(meta["frames"]):
         r = _frame_record(root, path, i, frame, meta, cameras)
@@ -277,17 +284,48 @@ def _read_transforms(root: Path, path: Path, cameras: dict) -> list[FrameRecord]
             raise DatasetError(path, f"frames[{i}] repeats timestep {key[0]}, camera {key[1]}")
         seen.add(key)
         records.append(r)
-    for key, values in (
-        ("timestep_indices", {r.timestep for r in records}),
-        ("camera_indices", {r.camera_index for r in records}),
-    ):
-        listed = meta[key]
-        if not isinstance(listed, list) or set(listed) != values or len(listed) != len(values):
-            raise DatasetError(
-                path,
-                f"'{key}' lists {_summary(listed)} but the frames use {_summary(sorted(values))}",
-            )
+    # A split without frames has nothing to check its lists against: VHAP's monocular
+    # export writes val as "frames": [], "camera_indices": [] and the *training*
+    # timesteps, and an empty test split still lists the cameras.
+    if records:
+        for key, used in (
+            ("timestep_indices", sorted({r.timestep for r in records})),
+            ("camera_indices", sorted({r.camera_index for r in records})),
+        ):
+            if sorted(listed[key]) != used:
+                raise DatasetError(
+                    path,
+                    f"'{key}' lists {_summary(sorted(listed[key]))} but the frames use "
+                    f"{_summary(used)}; a split file with frames must list exactly the "
+                    "timesteps and cameras of its frames (as VHAP's exporter writes them)",
+                )
     return records
+
+
+def _index_list(path: Path, meta: dict, key: str) -> list[int]:
+    values = meta[key]
+    ok = isinstance(values, list) and all(
+        isinstance(v, int) and not isinstance(v, bool) for v in values
+    )
+    if not ok or len(set(values)) != len(values):
+        raise DatasetError(
+            path, f"'{key}' must be a list of distinct integers, got {_summary(values)}"
+        )
+    return values
+
+
+def _check_held_out(root: Path, splits: dict[str, list[FrameRecord]]) -> None:
+    """No frame (timestep, camera) of a held-out split may be a training frame."""
+    trained = {(r.timestep, r.camera_index) for r in splits["train"]}
+    for name in ("val", "test"):
+        both = sorted(trained & {(r.timestep, r.camera_index) for r in splits[name]})
+        if both:
+            t, c = both[0]
+            raise DatasetError(
+                root / SPLIT_FILES[name],
+                f"{len(both)} of its frames are also in {SPLIT_FILES['train']} (first: "
+                f"timestep {t}, camera {c}); a held-out frame must not be trained on",
+            )
 
 
 def _frame_record(root, path, i, frame, meta, cameras) -> FrameRecord:

@@ -29,6 +29,7 @@ import numpy as np
 import torch
 
 from urhead.camera import Camera
+from urhead.data.background import parse_background
 from urhead.data.subdivision import vertex_normals
 from urhead.data.synth_motion import FPS, performance, tracking_noise
 from urhead.data.synth_scene import HAIR_MODES, MATERIALS, Strands, SubjectLook, build_look
@@ -131,6 +132,8 @@ class SynthConfig:
     light: str | None = None
     hair: str | None = None
     tracking_noise: float | None = None
+    background: tuple[float, float, float] = BACKGROUND
+    """RGB in [0, 1] the frames are composited on."""
 
     def __post_init__(self):
         if self.difficulty not in DIFFICULTIES:
@@ -156,8 +159,11 @@ class SynthConfig:
         return replace(self, **{**values, "tracking_noise": float(values["tracking_noise"])})
 
     def cache_key(self) -> str:
-        """The same for configs that make the same subject (conditions resolved)."""
+        """The same for configs that make the same subject (conditions resolved); white
+        subjects keep the keys they had before backgrounds were an option."""
         settings = asdict(self.resolved())
+        if self.background == BACKGROUND:
+            del settings["background"]
         blob = json.dumps({"generator_version": GENERATOR_VERSION, **settings}, sort_keys=True)
         return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
@@ -295,7 +301,7 @@ def synthesize(
             "difficulty": preset,
             "fps": FPS,
             "head": f"procedural_head({HEAD_SEED}); also head.npz",
-            "background": BACKGROUND,
+            "background": config.background,
             "light": asdict(LIGHTS[config.light]),
             "tracking_error": displacement,
             "triangles": renderer.triangle_count,
@@ -445,7 +451,7 @@ class _FrameRenderer:
             shadows=self.shadows,
             samples_per_side=self.config.samples_per_side,
             edge_samples_per_side=self.config.edge_samples_per_side,
-            background=BACKGROUND,
+            background=self.config.background,
             seed=self.config.seed * 100003 + t,
             bvh=self._bvh,
             centre_hits=False,
@@ -575,6 +581,9 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--test-last", type=int, default=None, help="hold out the last N frames (default 30 %%)"
     )
+    p.add_argument(
+        "--background", default="white", help="background colour: white, black or R,G,B (0-255)"
+    )
     p.add_argument("--contact-sheet", help="also write a grid of frames to this PNG")
     p.add_argument(
         "--force", action="store_true", help="replace an existing folder that is not a subject"
@@ -612,6 +621,7 @@ def config_from_args(args: argparse.Namespace) -> SynthConfig:
         light=args.light,
         hair=args.hair,
         tracking_noise=args.tracking_noise,
+        background=parse_background(args.background),
     ).resolved()
 
 

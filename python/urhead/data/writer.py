@@ -54,8 +54,10 @@ class SubjectWriter:
         root: the subject folder to create.
         camera: the fixed camera (an :class:`urhead.Camera`).
         overwrite: replace an existing ``root`` (only once the new subject is complete).
-        test_last: timesteps held out as the test split (and written as ``val`` too);
-            None: VHAP's split, the last 30 % of timesteps.
+        test_last: timesteps held out as the test split; None: VHAP's split, the first
+            ceil(0.7·T) timesteps train, the rest test. Either way the split files are laid
+            out as VHAP's exporter writes them for one camera (:func:`vhap_split_files`):
+            ``val`` has no frames.
     """
 
     def __init__(
@@ -165,18 +167,12 @@ class SubjectWriter:
         )
         np.savez(self._tmp / CANONICAL_FLAME, **canonical)
         num = len(self._frames)
-        num_test = self.test_last if self.test_last is not None else max(1, round(0.3 * num))
-        if num_test >= num:
+        if self.test_last is not None and self.test_last >= num:
             self.abort()
-            raise ValueError(f"test_last={num_test} leaves no training frames out of {num}")
-        splits = {
-            TRANSFORMS: self._frames,
-            SPLIT_FILES["train"]: self._frames[: num - num_test],
-            SPLIT_FILES["val"]: self._frames[num - num_test :],
-            SPLIT_FILES["test"]: self._frames[num - num_test :],
-        }
-        for name, frames in splits.items():
-            (self._tmp / name).write_text(json.dumps(self._transforms(frames), indent=1))
+            raise ValueError(f"test_last={self.test_last} leaves no training frames out of {num}")
+        num_train = num - self.test_last if self.test_last is not None else vhap_train_count(num)
+        for name, meta in vhap_split_files(self._frames, num_train, self._intrinsics()).items():
+            (self._tmp / name).write_text(json.dumps(meta, indent=4))
         old = None
         if self.root.exists():
             old = self.root.parent / f".{self.root.name}.old-{uuid.uuid4().hex[:8]}"
@@ -220,13 +216,39 @@ class SubjectWriter:
         }
         return entry
 
-    def _transforms(self, frames: list[dict]) -> dict:
+
+def vhap_train_count(num_timesteps: int) -> int:
+    """Training timesteps of VHAP's split: the first ceil(0.7·T) (computed as VHAP does)."""
+    return math.ceil(num_timesteps * 0.7)
+
+
+def vhap_split_files(frames: list[dict], num_train: int, intrinsics: dict) -> dict[str, dict]:
+    """The transforms files of a one-camera subject as VHAP's exporter writes them, by
+    file name: ``transforms.json`` and its two backups list every frame (the first backup
+    is written before the FLAME parameters, so its frames have no ``flame_param_path``);
+    train holds the first ``num_train`` timesteps, test the rest; val is empty but names
+    the training timesteps (VHAP holds out a camera as val, and one camera leaves none).
+    Each file copies the top-level intrinsics and lists its own timesteps and cameras."""
+    timesteps = [f["timestep_index"] for f in frames]
+    cameras = sorted({f["camera_index"] for f in frames})
+
+    def transforms(split_frames, split_timesteps, split_cameras):
         return {
-            **self._intrinsics(),
-            "timestep_indices": sorted({f["timestep_index"] for f in frames}),
-            "camera_indices": [0],
-            "frames": frames,
+            **intrinsics,
+            "frames": split_frames,
+            "timestep_indices": split_timesteps,
+            "camera_indices": split_cameras,
         }
+
+    without_flame = [{k: v for k, v in f.items() if k != "flame_param_path"} for f in frames]
+    return {
+        TRANSFORMS: transforms(frames, timesteps, cameras),
+        "transforms_backup.json": transforms(without_flame, timesteps, cameras),
+        "transforms_backup_flame.json": transforms(frames, timesteps, cameras),
+        SPLIT_FILES["train"]: transforms(frames[:num_train], timesteps[:num_train], cameras),
+        SPLIT_FILES["val"]: transforms([], timesteps[:num_train], []),
+        SPLIT_FILES["test"]: transforms(frames[num_train:], timesteps[num_train:], cameras),
+    }
 
 
 def _as_uint8(values: np.ndarray) -> np.ndarray:

@@ -25,7 +25,7 @@ import scipy.sparse.csgraph
 from urhead.errors import InvalidArgumentError, ShapeError
 from urhead.head.model import REGION_NAMES, HeadModel
 from urhead.head.objfile import read_obj
-from urhead.head.pickle_compat import load_flame_pickle
+from urhead.head.pickle_compat import ChumpyStub, load_flame_pickle
 from urhead.head.teeth import TeethConfig, add_teeth
 from urhead.head.uv import seam_free_vertex_uv
 
@@ -80,9 +80,10 @@ def load_flame(
     posedirs = _array(raw, "posedirs", np.float64)
     _shape(posedirs, "posedirs", (V, 3, None))
     j_regressor = raw["J_regressor"]
-    j_regressor = np.asarray(
-        j_regressor.toarray() if scipy.sparse.issparse(j_regressor) else j_regressor, np.float64
-    )
+    if scipy.sparse.issparse(j_regressor):
+        j_regressor = np.asarray(j_regressor.toarray(), np.float64)
+    else:
+        j_regressor = _array(raw, "J_regressor", np.float64)
     kintree = _array(raw, "kintree_table", np.int64)
     _shape(kintree, "kintree_table", (2, None))
     J = kintree.shape[1]
@@ -194,6 +195,11 @@ def _uv_layout(obj_path, num_vertices, faces):
 
 
 def _array(raw, key, dtype) -> np.ndarray:
+    if isinstance(raw[key], ChumpyStub):
+        raise InvalidArgumentError(
+            f"FLAME key {key!r} is a {raw[key].chumpy_class} expression, not a stored array "
+            "(only chumpy objects holding their array 'x' can be read without chumpy)"
+        )
     try:
         return np.asarray(raw[key], dtype=dtype)
     except (TypeError, ValueError) as e:

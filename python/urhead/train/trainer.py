@@ -22,6 +22,7 @@ import torch
 import torch.nn.functional as F
 
 from urhead.config import FitConfig
+from urhead.data.background import subject_background
 from urhead.eval import RefineSettings, evaluate_frames
 from urhead.losses import psnr
 from urhead.model import ErrorAccumulator, UvSurface, build_avatar, save_avatar, set_gaussians
@@ -113,7 +114,8 @@ class Trainer:
             raise ValueError(f"{subject.root}: the subject has no training frames")
         if len(self.held_out) == 0:
             raise ValueError(f"{subject.root}: the subject has no test or val frames to score")
-        self.background = _subject_background(subject)
+        requested = None if config.background == "auto" else config.background
+        self.background = subject_background(subject, requested)
 
     # --- set-up --------------------------------------------------------------------
 
@@ -408,15 +410,6 @@ def _title(c: FitConfig, avatar: Avatar) -> str:
         f"held-out PSNR vs training time — maps {c.uv_resolution}², SH {c.sh_degree}, "
         f"{avatar.num_gaussians} Gaussians"
     )
-
-
-def _subject_background(subject) -> torch.Tensor:
-    """The subject's background colour: FORMATS.md's default white unless the subject's
-    metadata names another (synthetic subjects record theirs)."""
-    meta = subject.root / "synthetic.json"
-    if meta.is_file():
-        return torch.tensor(json.loads(meta.read_text())["background"], dtype=torch.float32)
-    return torch.ones(3)
 
 
 def _write_history(path: Path, history: list) -> None:

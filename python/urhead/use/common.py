@@ -58,6 +58,31 @@ def open_subject(opened: OpenedAvatar, subject: Path | None, *, required: bool =
     return load_subject(subject)
 
 
+def add_background_option(parser) -> None:
+    parser.add_argument(
+        "--background",
+        default=None,
+        help="colour to render on: white, black or R,G,B (0-255); default: the one the avatar "
+        "was fitted on. Checked against the subject's pixels outside the masks",
+    )
+
+
+def use_background(opened: OpenedAvatar, subject, requested: str | None) -> None:
+    """Sets the avatar's background to ``--background`` (else keeps the recorded one),
+    checked against the subject's data when there is a subject: a colour the frames'
+    background contradicts is an error naming the subject."""
+    from urhead.data.background import parse_background, subject_background
+
+    if requested is not None:
+        colour, by = parse_background(requested), "--background"
+    else:
+        colour, by = opened.avatar.background.tolist(), "the avatar's recorded background"
+    if subject is not None:
+        opened.avatar.background = subject_background(subject, colour, requested_by=by)
+    else:
+        opened.avatar.background = torch.tensor(colour, dtype=torch.float32)
+
+
 def split_frames(subject, split: str):
     frames = getattr(subject, split)
     if len(frames) == 0:

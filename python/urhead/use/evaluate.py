@@ -37,10 +37,12 @@ from urhead.eval import RefineSettings, evaluate_frames, refine_params_of
 from urhead.eval.metrics import frame_params
 from urhead.losses import psnr, ssim
 from urhead.use.common import (
+    add_background_option,
     check_output_file,
     open_avatar,
     open_subject,
     split_frames,
+    use_background,
     write_file_atomically,
 )
 
@@ -83,6 +85,7 @@ def add_parser(subparsers) -> None:
         default=RefineSettings().steps,
         help="Adam steps per frame for --refine-flame (default: %(default)s)",
     )
+    add_background_option(p)
     p.set_defaults(run=run)
 
 
@@ -97,6 +100,7 @@ def run(args: argparse.Namespace) -> int:
         ".json",
     )
     subject = open_subject(opened, args.subject)
+    use_background(opened, subject, args.background)
     frames = split_frames(subject, args.split)
     nets, notes = load_lpips(args.lpips_weights)
     for note in notes:

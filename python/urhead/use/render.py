@@ -19,12 +19,14 @@ from urhead.camera import Camera
 from urhead.eval.metrics import frame_params
 from urhead.model.io import write_directory_atomically
 from urhead.use.common import (
+    add_background_option,
     avatar_camera,
     check_output_dir,
     open_avatar,
     open_subject,
     split_frames,
     to_uint8,
+    use_background,
 )
 from urhead.use.video import write_mp4
 
@@ -49,6 +51,7 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--error-scale", type=float, default=0.25, help="mean abs. error shown as full red"
     )
+    add_background_option(p)
     p.set_defaults(run=run)
 
 
@@ -64,6 +67,7 @@ def run(args: argparse.Namespace) -> int:
     occlusion = opened.occlusion_aware
     if args.orbit is None:
         subject = open_subject(opened, args.subject)
+        use_background(opened, subject, args.background)
         frames = split_frames(subject, args.split)
         args.out.mkdir(parents=True, exist_ok=True)
 
@@ -82,6 +86,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
 
     subject = open_subject(opened, args.subject, required=False)
+    use_background(opened, None, args.background)  # no ground truth to match in an orbit
     params, camera = orbit_frame(opened, subject, args.orbit)
     cameras = orbit_cameras(avatar, params, camera, args.orbit_steps, args.orbit_degrees)
     args.out.mkdir(parents=True, exist_ok=True)
