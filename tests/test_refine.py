@@ -139,3 +139,31 @@ def test_evaluate_frames_reports_both_conventions_and_refined_scores(head):
     assert scores.psnr_full > scores.psnr
     assert scores.psnr_refined > scores.psnr + 1.0
     assert scores.psnr_refined_full > scores.psnr_full
+
+
+def test_refinement_on_a_resampled_frame_improves_the_full_size_image(head):
+    from urhead.losses import psnr
+
+    avatar = textured_avatar(head, resolution=64, count=400)
+    cam = camera(128)
+    truth = _truth(avatar)
+    frame = _frame(avatar, truth, 100, cam)
+    start = _perturbed(truth)
+    out = refine_params(avatar, frame, start, RefineSettings(steps=40, max_side=64))
+
+    def score(p):
+        with torch.no_grad():
+            return float(psnr(avatar.render(p, cam).image.clamp(0, 1), frame.image))
+
+    assert score(out) > score(start) + 2.0
+    assert _pose_error(out, truth) < 0.65 * _pose_error(start, truth)
+
+
+def test_a_resized_camera_projects_to_scaled_pixel_coordinates():
+    cam = camera(128)
+    small = cam.resized(64, 32)
+    points = torch.tensor([[0.01, -0.02, 0.05], [0.0, 0.03, -0.02]])
+    uv, _ = cam.project(points)
+    uv_small, _ = small.project(points)
+    assert torch.allclose(uv_small, uv * torch.tensor([0.5, 0.25]), atol=1e-4)
+    assert (small.width, small.height) == (64, 32)

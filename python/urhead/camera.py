@@ -49,6 +49,14 @@ class Camera:
         object.__setattr__(self, "far", float(self.far))
         _core.check_camera(self.core_args())
 
+    def resized(self, width: int, height: int) -> Camera:
+        """The same camera for an image resampled to ``width`` × ``height``: focal lengths
+        and principal point scale with the image (pixel centres stay at x + 0.5)."""
+        k = self.K.clone()
+        k[0] *= width / self.width
+        k[1] *= height / self.height
+        return Camera(k, self.viewmat, int(width), int(height), self.near, self.far)
+
     def core_args(self) -> tuple:
         """The tuple the Rust kernels take."""
         return (

@@ -20,6 +20,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 
 from urhead.losses import l1, ssim
 from urhead.model.avatar import Avatar, FlameParams
@@ -39,10 +40,15 @@ class RefineSettings:
     lambda_ssim: float = 0.2
     warm_start: bool = True
     """Start a frame from the previous (consecutive) frame's correction."""
+    max_side: int = 256
+    """Refine on the frame resampled (area average) so its longer side is at most this:
+    a pose is found as well at 256² as at 512², in a quarter of the time."""
 
     def __post_init__(self):
         if self.steps < 0:
             raise ValueError(f"refine steps must be >= 0, got {self.steps}")
+        if self.max_side < 16:
+            raise ValueError(f"refine max_side must be >= 16, got {self.max_side}")
         for name in ("lr_expression", "lr_pose", "lr_translation", "lambda_ssim"):
             value = getattr(self, name)
             if not (0 <= value < float("inf")):
@@ -73,13 +79,13 @@ def refine_params(
             {"params": [transl], "lr": settings.lr_translation},
         ]
     )
-    target = frame.image
+    camera, target = _resampled(frame, settings.max_side)
     w = settings.lambda_ssim
     best, best_loss = start, float("inf")
     for _ in range(settings.steps):
         optimizer.zero_grad(set_to_none=True)
         params = FlameParams(expr, pose, transl)
-        image = avatar.render(params, frame.camera, occlusion_aware=occlusion_aware).image
+        image = avatar.render(params, camera, occlusion_aware=occlusion_aware).image
         loss = (1 - w) * l1(image, target) + (w * (1 - ssim(image, target)) if w > 0 else 0)
         value = float(loss.detach())
         if value < best_loss and torch.isfinite(loss):
@@ -90,6 +96,17 @@ def refine_params(
     # The last step's result is not scored; the best scored state is kept, so refinement
     # can never end worse than where it started.
     return best
+
+
+def _resampled(frame, max_side: int):
+    """``(camera, image)`` of ``frame`` with its longer side at most ``max_side``."""
+    h, w = frame.image.shape[:2]
+    factor = max_side / max(h, w)
+    if factor >= 1:
+        return frame.camera, frame.image
+    size = (max(1, round(h * factor)), max(1, round(w * factor)))
+    image = F.interpolate(frame.image.permute(2, 0, 1)[None], size=size, mode="area")
+    return frame.camera.resized(size[1], size[0]), image[0].permute(1, 2, 0).contiguous()
 
 
 def refine_sequence(
