@@ -44,7 +44,9 @@ def test_forward_and_gradients_match_reference(cam_args):
     expected = ref.antialias(color, raster, v, faces, cam)
     changed = (out != color).any(-1)
     assert changed.sum() > 40
-    assert (out - expected).abs().max() < 1e-15
+    # A few ulps of float64: the worst seen is 3.3e-15 with torch 2.15's reference ops
+    # (≤ 1e-15 with earlier torch, whose elementwise kernels rounded in another order).
+    assert (out - expected).abs().max() < 8e-15
     weights = torch.randn(out.shape, dtype=torch.float64, generator=g)
     grads = torch.autograd.grad((out * weights).sum(), (color, v))
     e_grads = torch.autograd.grad((expected * weights).sum(), (color, v))
