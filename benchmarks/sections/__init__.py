@@ -15,4 +15,4 @@ To add a section (e.g. a whole-iteration breakdown calling the trainer), write t
 and add its name to ``SECTIONS``.
 """
 
-SECTIONS = ["kernels", "splatting", "rendering", "iteration", "quality"]
+SECTIONS = ["kernels", "splatting", "rendering", "iteration", "quality", "conditions"]
