@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import secrets
 import shutil
 import signal
 import subprocess
@@ -78,13 +79,14 @@ def subjects(tmp_path_factory) -> dict[str, Path]:
 @pytest.fixture(scope="module")
 def ray_cluster():
     """``(address, pid)`` of a Ray head started here and stopped (its whole process tree)
-    at the end. It listens on 127.0.0.1 only, without token authentication (which Ray
-    would switch on or off depending on a token left in ~/.ray), for this process and the
-    drivers it starts alike. Its temporary folder is short: Ray's socket paths must fit in
-    107 characters."""
+    at the end. It takes a token of its own, which this process and the drivers it starts
+    inherit (not whatever token ~/.ray holds). Its temporary folder is short: Ray's socket
+    paths must fit in 107 characters."""
     pytest.importorskip("ray")
     patch = pytest.MonkeyPatch()
-    patch.setenv("RAY_AUTH_MODE", "disabled")
+    patch.setenv("RAY_AUTH_MODE", "token")
+    patch.setenv("RAY_AUTH_TOKEN", secrets.token_hex(32))
+    patch.delenv("RAY_AUTH_TOKEN_PATH", raising=False)
     temp = Path(tempfile.mkdtemp(prefix="urhead-ray-"))
     head = subprocess.Popen(
         [
@@ -92,7 +94,6 @@ def ray_cluster():
             "start",
             "--head",
             "--block",
-            "--node-ip-address=127.0.0.1",
             "--port=0",
             "--num-cpus=2",
             "--include-dashboard=false",
