@@ -102,54 +102,58 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--runs", type=int, default=3)
     parser.add_argument("--cpus", type=int, default=2, help="CPUs of the fit (and the head)")
+    parser.add_argument("--batch", type=int, default=4, help="subjects of the batch run")
     args = parser.parse_args()
     work = Path(tempfile.mkdtemp(prefix="urhead-bench-ray-"))
     # The head and the drivers share a token of this run (not whatever ~/.ray holds).
     env = dict(os.environ, URHEAD_NUM_THREADS=str(args.cpus), RAY_AUTH_MODE="token")
     env["RAY_AUTH_TOKEN"] = secrets.token_hex(32)
     urhead = [sys.executable, "-m", "urhead.cli"]
+    config = SynthConfig(
+        frames=10, resolution=64, seed=5, difficulty="easy", samples_per_side=1,
+        edge_samples_per_side=1,
+    )  # fmt: skip
     try:
-        config = SynthConfig(
-            frames=10,
-            resolution=64,
-            seed=5,
-            difficulty="easy",
-            samples_per_side=1,
-            edge_samples_per_side=1,
-        )
         subject = synthesize(work / "subject", config, progress=False)
-        many = [*urhead, "fit-many", str(subject), "--cpus-per-fit", str(args.cpus)]
+        batch = [str(shutil.copytree(subject, work / f"subject{k}")) for k in range(args.batch)]
+        many = [*urhead, "fit-many", "--cpus-per-fit", str(args.cpus), *FIT_OPTIONS]
         head, address = start_head(args.cpus, work / "ray", env)
+        # Each way of fitting: its command for run i, whether it joins the head, subjects.
+        ways = {
+            "urhead fit": (lambda i: [*urhead, "fit", str(subject), "--quiet", *FIT_OPTIONS,
+                                      "--out", str(work / f"fit{i}")], False, 1),
+            "fit-many, local Ray started": (lambda i: [*many, str(subject),
+                                            "--out", str(work / f"local{i}")], False, 1),
+            "fit-many, joining a head": (lambda i: [*many, str(subject), "--address", address,
+                                         "--out", str(work / f"join{i}")], True, 1),
+            f"fit-many, {args.batch} subjects, joining": (lambda i: [*many, *batch,
+                "--address", address, "--out", str(work / f"batch{i}")], True, args.batch),
+        }  # fmt: skip
+        runs: dict[str, list[tuple[float, float]]] = {name: [] for name in ways}
         try:
-            runs: dict[str, list[tuple[float, float]]] = {"fit": [], "local": [], "join": []}
-            for i in range(args.runs):  # interleaved, so load changes hit all three alike
-                fit = [*urhead, "fit", str(subject), "--out", str(work / f"fit{i}"), "--quiet"]
-                runs["fit"].append(timed([*fit, *FIT_OPTIONS], env))
-                local = [*many, "--out", str(work / f"local{i}"), *FIT_OPTIONS]
-                runs["local"].append(timed(local, env))
-                join = [*many, "--out", str(work / f"join{i}"), "--address", address]
-                runs["join"].append(timed([*join, *FIT_OPTIONS], env, head.pid))
+            for i in range(args.runs):  # interleaved, so load changes hit every way alike
+                for name, (command, joins, _) in ways.items():
+                    runs[name].append(timed(command(i), env, head.pid if joins else None))
         finally:
             head.send_signal(signal.SIGTERM)
             head.wait()
     finally:
         shutil.rmtree(work, ignore_errors=True)
 
-    def medians(key):
-        return tuple(statistics.median(r[j] for r in runs[key]) for j in (0, 1))
-
-    fit_wall, fit_cpu = medians("fit")
-    print(f"median of {args.runs} runs, {args.cpus} CPU(s) per fit; seconds wall / CPU")
-    print(f"urhead fit                            {fit_wall:6.1f} / {fit_cpu:6.1f}")
-    for key, label in (
-        ("local", "fit-many, local Ray started"),
-        ("join", "fit-many, joining a head"),
-    ):
-        wall, cpu = medians(key)
-        print(
-            f"urhead {label:31s}{wall:6.1f} / {cpu:6.1f}"
-            f"   overhead {wall - fit_wall:+.1f} / {cpu - fit_cpu:+.1f}"
+    print(
+        f"medians of {args.runs} runs, {args.cpus} CPU(s) per fit, seconds per subject "
+        "(wall / CPU) and the overhead against urhead fit"
+    )
+    per_subject = {
+        name: [statistics.median(r[j] for r in runs[name]) / count for j in (0, 1)]
+        for name, (_, _, count) in ways.items()
+    }
+    fit_wall, fit_cpu = per_subject["urhead fit"]
+    for name, (wall, cpu) in per_subject.items():
+        overhead = (
+            f"   {wall - fit_wall:+.1f} / {cpu - fit_cpu:+.1f}" if name != "urhead fit" else ""
         )
+        print(f"{name:34s}{wall:6.1f} / {cpu:5.1f}{overhead}")
 
 
 if __name__ == "__main__":

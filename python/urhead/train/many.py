@@ -73,9 +73,9 @@ def run(args: argparse.Namespace) -> int:
     if args.cpus_per_fit < 1:
         raise ValueError(f"--cpus-per-fit must be at least 1, got {args.cpus_per_fit}")
     config = fit_config(args)
-    subjects = [s.resolve() for s in args.subjects]
+    subjects = [s.absolute() for s in args.subjects]  # not resolve(): keep link names
     _check_distinct_names(subjects)
-    root = args.out.resolve()
+    root = args.out.absolute()
     root.mkdir(parents=True, exist_ok=True)
     summary = Summary(root, subjects, config)
 
@@ -90,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
             max_retries=WORKER_DEATH_RETRIES,
             retry_exceptions=False,
         )(fit_in_worker)
-        head = args.head.resolve() if args.head is not None else None
+        head = args.head.absolute() if args.head is not None else None
         tasks = {}
         for subject in subjects:
             if summary.rows[subject.name]["status"] != "pending":
