@@ -14,13 +14,15 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
 import torch
 
+from test_fit import TINY  # the tiny synthetic subject of the fit's own tests
 from urhead.cli import main
-from urhead.data.synthetic import SynthConfig, synthesize
+from urhead.data.synthetic import synthesize
 from urhead.model import load_avatar
 from urhead.train.checkpoint import find_checkpoint
 
@@ -53,23 +55,11 @@ FIT_OPTIONS = _options()
 KILLABLE_OPTIONS = _options(iterations=150, checkpoint_every=5)
 
 
-def _synth(path: Path, seed: int) -> Path:
-    config = SynthConfig(
-        frames=10,
-        resolution=64,
-        seed=seed,
-        difficulty="easy",
-        samples_per_side=1,
-        edge_samples_per_side=1,
-    )
-    return synthesize(path, config, progress=False)
-
-
 @pytest.fixture(scope="module")
 def subjects(tmp_path_factory) -> dict[str, Path]:
     base = tmp_path_factory.mktemp("subjects")
-    alice = _synth(base / "alice", seed=5)
-    bob = _synth(base / "bob", seed=6)
+    alice = synthesize(base / "alice", TINY, progress=False)
+    bob = synthesize(base / "bob", replace(TINY, seed=TINY.seed + 1), progress=False)
     broken = shutil.copytree(alice, base / "broken")
     for f in broken.glob("transforms*.json"):
         f.write_text('{"frames": [')
@@ -82,45 +72,38 @@ def ray_cluster():
     at the end. It takes a token of its own, which this process and the drivers it starts
     inherit (not whatever token ~/.ray holds). Its temporary folder is short: Ray's socket
     paths must fit in 107 characters."""
-    pytest.importorskip("ray")
-    patch = pytest.MonkeyPatch()
-    patch.setenv("RAY_AUTH_MODE", "token")
-    patch.setenv("RAY_AUTH_TOKEN", secrets.token_hex(32))
-    patch.delenv("RAY_AUTH_TOKEN_PATH", raising=False)
-    temp = Path(tempfile.mkdtemp(prefix="urhead-ray-"))
-    head = subprocess.Popen(
-        [
-            str(Path(sys.executable).with_name("ray")),
-            "start",
-            "--head",
-            "--block",
-            "--port=0",
-            "--num-cpus=2",
-            "--include-dashboard=false",
-            "--object-store-memory=200000000",
-            "--disable-usage-stats",
-            f"--temp-dir={temp}",
-        ],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
-    try:
-        address_file = temp / "ray_current_cluster"
-        deadline = time.time() + 60
-        while not address_file.is_file() or not address_file.read_text().strip():
-            assert head.poll() is None, "ray start --head exited"
-            assert time.time() < deadline, "the Ray head did not start within 60 s"
-            time.sleep(0.2)
-        yield address_file.read_text().strip(), head.pid
-    finally:
-        head.send_signal(signal.SIGTERM)  # ray start --block stops what it started
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("RAY_AUTH_MODE", "token")
+        patch.setenv("RAY_AUTH_TOKEN", secrets.token_hex(32))
+        patch.delenv("RAY_AUTH_TOKEN_PATH", raising=False)
+        pytest.importorskip("ray")  # after the token: Ray reads it once per process
+        temp = Path(tempfile.mkdtemp(prefix="urhead-ray-"))
+        head = subprocess.Popen(
+            [
+                str(Path(sys.executable).with_name("ray")),
+                *("start", "--head", "--block", "--port=0", "--num-cpus=2"),
+                *("--include-dashboard=false", "--object-store-memory=200000000"),
+                *("--disable-usage-stats", f"--temp-dir={temp}"),
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
         try:
-            head.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            head.kill()
-            head.wait()
-        shutil.rmtree(temp, ignore_errors=True)
-        patch.undo()
+            address_file = temp / "ray_current_cluster"
+            deadline = time.time() + 60
+            while not address_file.is_file() or not address_file.read_text().strip():
+                assert head.poll() is None, "ray start --head exited"
+                assert time.time() < deadline, "the Ray head did not start within 60 s"
+                time.sleep(0.2)
+            yield address_file.read_text().strip(), head.pid
+        finally:
+            head.send_signal(signal.SIGTERM)  # ray start --block stops what it started
+            try:
+                head.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                head.kill()
+                head.wait()
+            shutil.rmtree(temp, ignore_errors=True)
 
 
 def _fit(subject: Path, out: Path, options: list[str], monkeypatch) -> Path:
