@@ -22,9 +22,11 @@ import torch
 
 from test_fit import TINY  # the tiny synthetic subject of the fit's own tests
 from urhead.cli import main
+from urhead.config import FitConfig
 from urhead.data.synthetic import synthesize
 from urhead.model import load_avatar
 from urhead.train.checkpoint import find_checkpoint
+from urhead.train.summary import Summary
 
 # One cluster for the module: xdist's loadgroup keeps these tests on one worker.
 pytestmark = pytest.mark.xdist_group("ray")
@@ -251,3 +253,28 @@ def test_without_ray_the_message_says_how_to_install_it(tmp_path, monkeypatch, c
     monkeypatch.setitem(sys.modules, "ray", None)  # import ray raises ImportError
     assert main(["fit-many", str(tmp_path), "--out", str(tmp_path / "root")]) == 1
     assert "pip install 'urhead[cluster]'" in capsys.readouterr().err
+
+
+def test_summary_rows_progress_and_table(tmp_path):
+    """Without Ray: the rows follow the outcomes, psnr_full is shown when a fit reports it,
+    and the file is whole after every write."""
+    subjects = [tmp_path / "subjects" / n for n in ("ann", "ben", "cat")]
+    summary = Summary(tmp_path, subjects, FitConfig())
+    summary.write()
+    assert json.loads((tmp_path / "summary.json").read_text())["pending"] == 3
+    summary.finished("ann", {"metrics": {"psnr": 20.5, "psnr_full": 18.25}, "seconds": 3.216})
+    summary.finished("ben", {"metrics": {"psnr": 19.0}, "seconds": 2.0})
+    summary.finished("cat", {"error": "DatasetError: cat/transforms.json: is not valid JSON"})
+    summary.write()
+    written = json.loads((tmp_path / "summary.json").read_text())
+    assert (written["done"], written["failed"], written["pending"]) == (2, 1, 0)
+    ann, ben, cat = written["subjects"]
+    assert (ann["psnr"], ann["psnr_full"], ann["seconds"]) == (20.5, 18.25, 3.22)
+    assert ben["psnr_full"] is None and cat["status"] == "failed"
+    assert summary.progress_line("ann") == (
+        "[3/3] ann: done in 3.2 s, held-out PSNR 20.50 dB in the mask, 18.25 dB full image"
+    )
+    assert summary.progress_line("cat").endswith("failed: " + cat["error"])
+    table = summary.table().splitlines()
+    assert table[1].split() == ["ann", "done", "20.50", "18.25", "3.2"]
+    assert table[2].split() == ["ben", "done", "19.00", "-", "2.0"]

@@ -14,20 +14,17 @@ Workers share nothing with the driver but ``ROOT``, the subject folders and ``--
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import asdict
 from pathlib import Path
 
 from urhead.config import FitConfig
 from urhead.train.command import add_fit_options, configure_threads, fit_config, fit_subject
-from urhead.use.common import write_file_atomically
+from urhead.train.summary import Summary
 
-SUMMARY = "summary.json"
 # Ray re-runs a task whose worker process or node died (not one that raised); each re-run
 # resumes from the subject's last checkpoint.
 WORKER_DEATH_RETRIES = 3
@@ -85,46 +82,50 @@ def run(args: argparse.Namespace) -> int:
         ray.init(address=args.address, logging_level=logging.WARNING)
     try:
         _check_cluster_fits(ray, args.cpus_per_fit)
-        fit = ray.remote(
-            num_cpus=args.cpus_per_fit,
-            max_retries=WORKER_DEATH_RETRIES,
-            retry_exceptions=False,
-        )(fit_in_worker)
-        head = args.head.absolute() if args.head is not None else None
-        tasks = {}
-        for subject in subjects:
-            if summary.rows[subject.name]["status"] != "pending":
-                continue
-            task = fit.options(name=f"fit {subject.name}").remote(
-                str(subject),
-                str(root / subject.name),
-                config,
-                head_path=None if head is None else str(head),
-                test_last=args.test_last,
-                cpus=args.cpus_per_fit,
-            )
-            tasks[task] = subject.name
-        summary.write()
-        print(summary.headline(len(tasks), args.cpus_per_fit, ray.cluster_resources()), flush=True)
-        while tasks:
-            [task], _ = ray.wait(list(tasks), num_returns=1)
-            name = tasks.pop(task)
-            try:
-                summary.finished(name, ray.get(task))
-            except ray.exceptions.RayError as e:  # e.g. its worker or node died too often
-                summary.failed(name, f"{type(e).__name__}: {str(e).strip().splitlines()[0]}")
-            summary.write()
-            print(summary.progress_line(name), flush=True)
+        _fit_pending(ray, args, config, summary)
     finally:
         ray.shutdown()
     print(summary.table())
     failed = summary.count("failed")
     if failed:
         print(
-            f"urhead fit-many: {failed} of {len(subjects)} subjects failed; see {root / SUMMARY}",
+            f"urhead fit-many: {failed} of {len(subjects)} subjects failed; see {summary.path}",
             file=sys.stderr,
         )
     return 1 if failed else 0
+
+
+def _fit_pending(ray, args: argparse.Namespace, config: FitConfig, summary: Summary) -> None:
+    """Submits a task per pending subject, then records each as it finishes."""
+    fit = ray.remote(
+        num_cpus=args.cpus_per_fit,
+        max_retries=WORKER_DEATH_RETRIES,
+        retry_exceptions=False,
+    )(fit_in_worker)
+    head = None if args.head is None else str(args.head.absolute())
+    tasks = {}
+    for name, row in summary.rows.items():
+        if row["status"] == "pending":
+            task = fit.options(name=f"fit {name}").remote(
+                row["path"],
+                str(summary.path.parent / name),
+                config,
+                head_path=head,
+                test_last=args.test_last,
+                cpus=args.cpus_per_fit,
+            )
+            tasks[task] = name
+    summary.write()
+    print(summary.headline(len(tasks), args.cpus_per_fit, ray.cluster_resources()), flush=True)
+    while tasks:
+        [task], _ = ray.wait(list(tasks), num_returns=1)
+        name = tasks.pop(task)
+        try:
+            summary.finished(name, ray.get(task))
+        except ray.exceptions.RayError as e:  # e.g. its worker or node died too often
+            summary.failed(name, f"{type(e).__name__}: {str(e).strip().splitlines()[0]}")
+        summary.write()
+        print(summary.progress_line(name), flush=True)
 
 
 def fit_in_worker(
@@ -200,131 +201,3 @@ def _check_cluster_fits(ray, cpus_per_fit: int) -> None:
             f"--cpus-per-fit {cpus_per_fit}: no node of the Ray cluster has that many CPUs "
             f"(largest: {largest:g})"
         )
-
-
-class Summary:
-    """One row per subject (status, held-out PSNR in the mask and over the full image,
-    seconds, error), written to ``ROOT/summary.json``. Rows of subjects finished by an
-    earlier run keep that run's seconds."""
-
-    def __init__(self, root: Path, subjects: list[Path], config: FitConfig):
-        self.path = root / SUMMARY
-        earlier = _earlier_rows(self.path)
-        self.rows = {s.name: _initial_row(root, s, config, earlier.get(s.name)) for s in subjects}
-
-    def finished(self, name: str, outcome: dict) -> None:
-        if "error" in outcome:
-            self.failed(name, outcome["error"])
-            return
-        m = outcome["metrics"]
-        self.rows[name].update(
-            status="done",
-            psnr=m.get("psnr"),
-            psnr_full=m.get("psnr_full"),
-            seconds=round(outcome["seconds"], 2),
-        )
-
-    def failed(self, name: str, error: str) -> None:
-        self.rows[name].update(status="failed", error=error)
-
-    def count(self, status: str) -> int:
-        return sum(r["status"] == status for r in self.rows.values())
-
-    def write(self) -> None:
-        counts = {s: self.count(s) for s in ("done", "skipped", "failed", "pending")}
-        text = json.dumps({**counts, "subjects": list(self.rows.values())}, indent=2)
-        write_file_atomically(self.path, lambda tmp: tmp.write_text(text))
-
-    def headline(self, submitted: int, cpus_per_fit: int, resources: dict) -> str:
-        return (
-            f"fit-many: {len(self.rows)} subjects, {submitted} to fit "
-            f"({self.count('skipped')} finished earlier, {self.count('failed')} refused); "
-            f"{cpus_per_fit} CPU(s) per fit on a Ray cluster of {resources.get('CPU', 0):g} CPUs"
-        )
-
-    def progress_line(self, name: str) -> str:
-        row = self.rows[name]
-        settled = len(self.rows) - self.count("pending")
-        head = f"[{settled}/{len(self.rows)}] {name}:"
-        if row["status"] == "failed":
-            return f"{head} failed: {row['error']}"
-        return f"{head} done in {row['seconds']:.1f} s, held-out PSNR {_psnr_text(row)}"
-
-    def table(self) -> str:
-        header = ("subject", "status", "PSNR mask", "PSNR full", "seconds", "error")
-        lines = [header]
-        for r in self.rows.values():
-            lines.append(
-                (
-                    r["subject"],
-                    r["status"],
-                    _number(r["psnr"], ".2f"),
-                    _number(r["psnr_full"], ".2f"),
-                    _number(r["seconds"], ".1f"),
-                    r["error"] or "",
-                )
-            )
-        widths = [max(len(line[i]) for line in lines) for i in range(len(header))]
-        return "\n".join(
-            "  ".join(cell.ljust(w) for cell, w in zip(line, widths, strict=True)).rstrip()
-            for line in lines
-        )
-
-
-def _initial_row(root: Path, subject: Path, config: FitConfig, earlier: dict | None) -> dict:
-    """``skipped`` if the subject's fit finished (with this configuration), ``failed`` if
-    it finished with another one, else ``pending``."""
-    row = {
-        "subject": subject.name,
-        "path": str(subject),
-        "status": "pending",
-        "psnr": None,
-        "psnr_full": None,
-        "seconds": None,
-        "error": None,
-    }
-    out = root / subject.name
-    if not (out / "metrics.json").is_file():
-        return row
-    metrics = json.loads((out / "metrics.json").read_text())
-    avatar_meta = out / "avatar" / "avatar.json"
-    fitted_with = (
-        json.loads(avatar_meta.read_text()).get("config") if avatar_meta.is_file() else None
-    )
-    if fitted_with is not None and fitted_with != asdict(config):
-        return {
-            **row,
-            "status": "failed",
-            "error": f"{out} was fitted with a different configuration; "
-            "use the same options, or remove it or choose another --out to fit it again",
-        }
-    seconds = (
-        earlier.get("seconds") if earlier and earlier["status"] in ("done", "skipped") else None
-    )
-    return {
-        **row,
-        "status": "skipped",
-        "psnr": metrics.get("psnr"),
-        "psnr_full": metrics.get("psnr_full"),
-        "seconds": seconds,
-    }
-
-
-def _earlier_rows(path: Path) -> dict[str, dict]:
-    """The previous run's rows by subject name (none if there was no readable summary)."""
-    try:
-        rows = json.loads(path.read_text())["subjects"]
-    except (OSError, ValueError, KeyError, TypeError):
-        return {}
-    return {r["subject"]: r for r in rows if isinstance(r, dict) and "subject" in r}
-
-
-def _number(value, spec: str) -> str:
-    return "-" if value is None else format(value, spec)
-
-
-def _psnr_text(row: dict) -> str:
-    text = f"{_number(row['psnr'], '.2f')} dB in the mask"
-    if row["psnr_full"] is not None:
-        text += f", {row['psnr_full']:.2f} dB full image"
-    return text
