@@ -15,6 +15,7 @@ COMMAND_MODULES = (
     "urhead.head.convert",
     "urhead.data.synthetic",
     "urhead.train.command",
+    "urhead.train.many",
     "urhead.use.evaluate",
     "urhead.use.render",
     "urhead.use.reenact",
