@@ -4,21 +4,9 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 from pathlib import Path
 
 from urhead.config import FIT_PRESETS, FitConfig, add_arguments, from_arguments
-
-
-def configure_threads() -> None:
-    """Rust kernels get every core; torch gets one thread. torch's OpenMP workers spin
-    after each op and, on a small machine, starve the Rust pool (measured: up to 2× slower
-    iterations on 2 cores); the few torch ops of the loop are cheap single-threaded.
-    An explicit ``URHEAD_NUM_THREADS`` is kept."""
-    import torch
-
-    os.environ.setdefault("URHEAD_NUM_THREADS", str(os.cpu_count() or 1))
-    torch.set_num_threads(1)
 
 
 def add_parser(subparsers) -> None:
@@ -37,7 +25,13 @@ def add_parser(subparsers) -> None:
         default=None,
         help="head model .npz (urhead convert-flame output); default: the built-in procedural head",
     )
-    p.add_argument("--preset", choices=sorted(FIT_PRESETS), default="paper")
+    p.add_argument(
+        "--preset",
+        choices=sorted(FIT_PRESETS),
+        default="paper",
+        help="schedule and resolution: the paper's, or quick (minutes on 2 cores); an "
+        "option below overrides its preset value",
+    )
     p.add_argument(
         "--resume", action="store_true", help="continue from DIR/checkpoint if there is one"
     )
@@ -48,26 +42,39 @@ def add_parser(subparsers) -> None:
         help="hold out the last N timesteps of transforms.json instead of the split files",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    add_arguments(p, FitConfig)
-    p.set_defaults(run=run)
+    add_arguments(p, FitConfig, FIT_PRESETS)
+    p.set_defaults(run=run, resume_hint=resume_hint)
+
+
+def resume_hint(args: argparse.Namespace) -> str:
+    """What Ctrl-C leaves behind and how to continue from it."""
+    from urhead.train.checkpoint import find_checkpoint
+
+    found = find_checkpoint(Path(args.out))
+    if found is None:
+        return "No checkpoint was written yet; run the same command again to start over."
+    return f"The last checkpoint is {found}; continue with the same command and --resume."
 
 
 def run(args: argparse.Namespace) -> int:
     from urhead.data import load_subject
     from urhead.head import load_head, procedural_head
     from urhead.train.trainer import Trainer
+    from urhead.use.common import add_subject_record
 
     config = from_arguments(FitConfig, args, FIT_PRESETS, args.preset)
     subject = load_subject(args.subject, test_last=args.test_last)
     head = load_head(args.head) if args.head is not None else procedural_head(0)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    configure_threads()
     from tqdm.contrib.logging import logging_redirect_tqdm
 
     with logging_redirect_tqdm():  # log lines above the progress bar, not through it
         result = Trainer(subject, head, config, args.out, progress=not args.quiet).run(
             resume=args.resume
         )
+    # The trainer records the subject's absolute path; the relative one lets an avatar
+    # moved together with its subject find it.
+    add_subject_record(result.out / "avatar", subject.root)
     m = result.metrics
     print(
         f"held-out PSNR {m['psnr']:.2f} dB (mesh only {m['psnr_mesh_only']:.2f}), "

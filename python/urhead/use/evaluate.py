@@ -28,11 +28,14 @@ import argparse
 import json
 import math
 import statistics
+import sys
 import time
 from pathlib import Path
 
 import torch
 
+from urhead._progress import progress as progress_bar
+from urhead._progress import tracked
 from urhead.eval import RefineSettings, evaluate_frames, refine_params_of
 from urhead.eval.metrics import frame_params
 from urhead.losses import psnr, ssim
@@ -63,7 +66,9 @@ def add_parser(subparsers) -> None:
         default=None,
         help="subject folder (default: the one the fit recorded)",
     )
-    p.add_argument("--split", choices=("test", "val", "train"), default="test")
+    p.add_argument(
+        "--split", choices=("test", "val", "train"), default="test", help="frames to score"
+    )
     p.add_argument(
         "--lpips-weights",
         type=Path,
@@ -72,7 +77,13 @@ def add_parser(subparsers) -> None:
         help="folder with alex.pth/vgg.pth (lpips v0.1) and alexnet*.pth/vgg16*.pth "
         "(torchvision); default $URHEAD_LPIPS_DIR, then ~/.cache/urhead/lpips",
     )
-    p.add_argument("--json", type=Path, default=None, help="where to write the JSON")
+    p.add_argument(
+        "--json",
+        default=None,
+        metavar="FILE",
+        help="where to write the JSON, '-' for standard output (the table then goes to "
+        "standard error); default: AVATAR/eval_SPLIT.json",
+    )
     p.add_argument(
         "--refine-flame",
         action="store_true",
@@ -90,24 +101,25 @@ def add_parser(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from urhead.train.command import configure_threads
     from urhead.use.lpips import load_lpips
 
     opened = open_avatar(args.avatar)
-    out = check_output_file(
-        args.json if args.json is not None else opened.path / f"eval_{args.split}.json",
-        "--json",
-        ".json",
-    )
+    to_stdout = args.json == "-"
+    if not to_stdout:
+        out = check_output_file(
+            Path(args.json) if args.json is not None else opened.path / f"eval_{args.split}.json",
+            "--json",
+            ".json",
+        )
+    report = sys.stderr if to_stdout else sys.stdout  # standard output holds only the JSON
     subject = open_subject(opened, args.subject)
     use_background(opened, subject, args.background)
     frames = split_frames(subject, args.split)
     nets, notes = load_lpips(args.lpips_weights)
     for note in notes:
-        print(note)
+        print(note, file=report)
     if args.refine_steps < 0:
         raise SystemExit(f"--refine-steps must be >= 0, got {args.refine_steps}")
-    configure_threads()
     refine = RefineSettings(steps=args.refine_steps) if args.refine_flame else None
     result = evaluate_avatar(
         opened.avatar,
@@ -123,9 +135,13 @@ def run(args: argparse.Namespace) -> int:
         split=args.split,
         lpips_skipped=notes,
     )
-    write_file_atomically(out, lambda tmp: tmp.write_text(json.dumps(result, indent=2)))
-    print(format_table(result))
-    print(f"wrote {out}")
+    text = json.dumps(result, indent=2)
+    print(format_table(result), file=report)
+    if to_stdout:
+        print(text, flush=True)
+    else:
+        write_file_atomically(out, lambda tmp: tmp.write_text(text))
+        print(f"wrote {out}")
     return 0
 
 
@@ -144,11 +160,11 @@ def evaluate_avatar(
     docstring)."""
     if len(frames) == 0:
         raise ValueError("frames is empty: nothing to evaluate")
-    result = _evaluate(avatar, frames, occlusion_aware=occlusion_aware, lpips=lpips or {})
+    result = _evaluate(
+        avatar, frames, occlusion_aware=occlusion_aware, lpips=lpips or {}, progress=progress
+    )
     if refine is not None and refine.steps > 0:
-        from tqdm import tqdm
-
-        with tqdm(total=len(frames), desc="refine", unit="frame", disable=not progress) as bar:
+        with progress_bar(len(frames), "refine", enabled=progress) as bar:
             params = refine_params_of(
                 avatar, frames, refine, occlusion_aware, progress=lambda: bar.update(1)
             )
@@ -166,7 +182,7 @@ def evaluate_avatar(
 
 
 @torch.no_grad()
-def _evaluate(avatar, frames, *, occlusion_aware: bool, lpips: dict) -> dict:
+def _evaluate(avatar, frames, *, occlusion_aware: bool, lpips: dict, progress: bool) -> dict:
     first = frames[0]
     avatar.render(frame_params(avatar, first), first.camera, occlusion_aware=occlusion_aware)
     per = {"psnr": [], "psnr_full": [], "ssim": [], "psnr_mesh_only": [], "seconds": []}
@@ -174,7 +190,7 @@ def _evaluate(avatar, frames, *, occlusion_aware: bool, lpips: dict) -> dict:
     temporal = {"temporal_error_change": []}
     temporal.update({f"temporal_lpips_{v}": [] for v in ("alex", "vgg")})
     previous = None
-    for frame in frames:
+    for frame in tracked(frames, len(frames), "eval", enabled=progress):
         params = frame_params(avatar, frame)
         start = time.perf_counter()
         out = avatar.render(params, frame.camera, occlusion_aware=occlusion_aware)
