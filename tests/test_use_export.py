@@ -217,3 +217,79 @@ def test_export_accepts_held_out_timesteps_like_render_orbit(use, tmp_path):
         verts = avatar.render(avatar.params_from_flame(frame.flame), frame.camera).mesh.verts
     mesh = read_obj(out / f"{held_out:05d}.obj")
     assert np.abs(mesh.vertices - verts.double().numpy()).max() < 1e-6
+
+
+def read_glb(path):
+    """An independent GLB reader: the JSON document and each accessor as a numpy array,
+    and the embedded image's bytes."""
+    import json
+    import struct
+
+    data = path.read_bytes()
+    magic, version, total = struct.unpack_from("<4sII", data)
+    assert (magic, version, total) == (b"glTF", 2, len(data))
+    json_len, json_type = struct.unpack_from("<I4s", data, 12)
+    assert json_type == b"JSON"
+    doc = json.loads(data[20 : 20 + json_len])
+    bin_len, bin_type = struct.unpack_from("<I4s", data, 20 + json_len)
+    assert bin_type == b"BIN\0"
+    blob = data[28 + json_len : 28 + json_len + bin_len]
+    kinds = {5126: "<f4", 5125: "<u4"}
+    widths = {"SCALAR": 1, "VEC2": 2, "VEC3": 3}
+
+    def accessor(i):
+        a = doc["accessors"][i]
+        view = doc["bufferViews"][a["bufferView"]]
+        raw = blob[view["byteOffset"] : view["byteOffset"] + view["byteLength"]]
+        return np.frombuffer(raw, kinds[a["componentType"]]).reshape(a["count"], -1)
+
+    image_view = doc["bufferViews"][doc["images"][0]["bufferView"]]
+    png = blob[image_view["byteOffset"] : image_view["byteOffset"] + image_view["byteLength"]]
+    primitive = doc["meshes"][0]["primitives"][0]
+    arrays = {name: accessor(i) for name, i in primitive["attributes"].items()}
+    arrays["indices"] = accessor(primitive["indices"]).reshape(-1, 3)
+    for name, i in primitive["attributes"].items():
+        assert arrays[name].shape[1] == widths[doc["accessors"][i]["type"]]
+    return doc, arrays, png
+
+
+def test_glb_export_is_the_posed_mesh_with_its_texture(use, tmp_path):
+    import cv2
+
+    out, mesh_out = tmp_path / "glb", tmp_path / "mesh"
+    argv = ["export", str(use.avatar_dir), "--frames", f"{JAW_TIMESTEP}"]
+    assert main([*argv, "--glb", str(out), "--mesh", str(mesh_out)]) == 0
+    avatar = load_avatar(use.avatar_dir)
+    head = avatar.head
+    camera = avatar_camera(open_avatar(use.avatar_dir), None)
+    with torch.no_grad():
+        verts = avatar.render(avatar.frame(JAW_TIMESTEP), camera, gaussians=False).mesh.verts
+    doc, arrays, png = read_glb(out / f"{JAW_TIMESTEP:05d}.glb")
+    assert doc["materials"][0]["extensions"] == {"KHR_materials_unlit": {}}
+    tri = arrays["indices"].astype(np.int64)
+    assert tri.shape == head.faces.shape
+    # Every triangle corner has the mesh vertex and the UV of the OBJ face it comes from.
+    corners = arrays["POSITION"][tri]
+    assert np.abs(corners - verts.numpy()[head.faces]).max() < 1e-6
+    uv = arrays["TEXCOORD_0"][tri]
+    flipped = head.uv_coords[head.uv_faces] * [1, -1] + [0, 1]  # glTF: v down from the top
+    assert np.abs(uv - flipped).max() < 1e-6
+    accessor = doc["accessors"][doc["meshes"][0]["primitives"][0]["attributes"]["POSITION"]]
+    assert np.allclose(accessor["min"], arrays["POSITION"].min(0))
+    # Seams split only where a vertex has several UVs.
+    assert len(arrays["POSITION"]) == len(
+        {(v, t) for v, t in zip(head.faces.ravel(), head.uv_faces.ravel(), strict=True)}
+    )
+    texture = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    assert np.array_equal(texture, cv2.imread(str(mesh_out / "texture.png")))
+
+
+def test_glb_opens_in_trimesh(use, tmp_path):
+    trimesh = pytest.importorskip("trimesh")  # an independent glTF reader, when installed
+    out = tmp_path / "glb"
+    assert main(["export", str(use.avatar_dir), "--glb", str(out), "--frames", "0"]) == 0
+    scene = trimesh.load(out / "00000.glb")
+    mesh = next(iter(scene.geometry.values()))
+    avatar = load_avatar(use.avatar_dir)
+    assert len(mesh.faces) == len(avatar.head.faces)
+    assert mesh.visual.material.baseColorTexture.size == (64, 64)

@@ -8,6 +8,8 @@
   and eyes) that rotation is exact, so the file renders the avatar's Gaussian layer.
 - ``--mesh DIR``: ``DIR/{timestep:05d}.obj`` per frame (displaced posed mesh with the
   FLAME UV layout), one ``material.mtl`` and ``texture.png`` (the colour map's DC term).
+- ``--glb DIR``: ``DIR/{timestep:05d}.glb`` per frame, binary glTF of the same mesh with
+  the DC colour map embedded as an unlit texture (:mod:`urhead.use.glb`).
 - ``--maps DIR``: every UV map as ZIP-compressed float EXR (``--half``: 16-bit floats):
   ``color.exr`` with one layer per SH coefficient (``sh00.R`` … ``shKK.B``),
   ``normal.exr``, ``displacement.exr``, ``opacity.exr`` logits, ``scale.exr`` log
@@ -41,6 +43,7 @@ from urhead.use.common import (
     selectable_timesteps,
 )
 from urhead.use.exr import image_channels, write_exr
+from urhead.use.glb import glb_bytes, seam_split
 from urhead.use.ply import write_gaussian_ply
 from urhead.use.sh_rotation import nearest_rotation, rotate_sh
 
@@ -50,13 +53,17 @@ def add_parser(subparsers) -> None:
         "export",
         help="export an avatar as 3DGS PLY files, textured meshes or UV maps",
         description="Export a fitted avatar: per-frame standard 3DGS PLY files in world "
-        "space (--ply), per-frame textured OBJ meshes (--mesh), the UV maps as compressed "
+        "space (--ply), per-frame textured OBJ meshes (--mesh) and binary glTF (--glb), "
+        "the UV maps as compressed "
         "float EXR with PNG previews (--maps). Each output folder is written whole, then renamed "
         "into place (an existing one is replaced).",
     )
     p.add_argument("avatar", type=Path, help="avatar directory (the fit's OUT/avatar)")
     p.add_argument("--ply", type=Path, default=None, metavar="DIR", help="write PLY files here")
     p.add_argument("--mesh", type=Path, default=None, metavar="DIR", help="write OBJ files here")
+    p.add_argument(
+        "--glb", type=Path, default=None, metavar="DIR", help="write textured GLB files here"
+    )
     p.add_argument("--maps", type=Path, default=None, metavar="DIR", help="write UV maps here")
     p.add_argument(
         "--frames",
@@ -78,9 +85,9 @@ def add_parser(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.ply is None and args.mesh is None and args.maps is None:
-        raise ValueError("nothing to export: pass --ply DIR, --mesh DIR and/or --maps DIR")
-    outputs = {"--ply": args.ply, "--mesh": args.mesh, "--maps": args.maps}
+    outputs = {"--ply": args.ply, "--mesh": args.mesh, "--glb": args.glb, "--maps": args.maps}
+    if all(path is None for path in outputs.values()):
+        raise ValueError("nothing to export: pass --ply, --mesh, --glb and/or --maps DIR")
     for option, path in outputs.items():
         if path is not None:
             check_output_dir(path, option)
@@ -89,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
     if args.ply is not None and avatar.num_gaussians == 0:
         raise ValueError(f"--ply: the avatar {args.avatar} has no Gaussians (a mesh-only fit)")
     subject = None
-    if args.ply is not None or args.mesh is not None:
+    if any(path is not None for path in (args.ply, args.mesh, args.glb)):
         subject = open_subject(opened, args.subject, required=False)
     timesteps = parse_timesteps(
         args.frames, selectable_timesteps(opened, subject), default=avatar.timesteps.tolist()
@@ -105,6 +112,11 @@ def run(args: argparse.Namespace) -> int:
                 args.mesh, lambda tmp: write_mesh_frames(opened, subject, timesteps, tmp)
             )
             print(f"wrote {len(timesteps)} OBJ meshes to {args.mesh}")
+        if args.glb is not None:
+            write_directory_atomically(
+                args.glb, lambda tmp: write_glb_frames(opened, subject, timesteps, tmp)
+            )
+            print(f"wrote {len(timesteps)} GLB files to {args.glb}")
         if args.maps is not None:
             write_directory_atomically(args.maps, lambda tmp: write_maps(opened, tmp, args.half))
             print(f"wrote the UV maps to {args.maps}")
@@ -162,11 +174,32 @@ def write_mesh_frames(opened: OpenedAvatar, subject, timesteps: list[int], folde
     corners = np.stack([head.faces + 1, head.uv_faces + 1], -1).reshape(-1, 6)
     faces = "".join("f {}/{} {}/{} {}/{}\n".format(*row) for row in corners.tolist())
     for t in tracked(timesteps, len(timesteps), "export --mesh"):
-        params, camera = frame_at(opened, subject, t)
-        verts = avatar.render(params, camera, gaussians=False).mesh.verts
+        verts = posed_vertices(opened, subject, t)
         v = "".join(f"v {x:.6f} {y:.6f} {z:.6f}\n" for x, y, z in verts.tolist())
         text = f"# urhead avatar, timestep {t}\nmtllib material.mtl\n{v}{vt}usemtl avatar\n{faces}"
         (folder / f"{t:05d}.obj").write_text(text)
+
+
+def posed_vertices(opened: OpenedAvatar, subject, timestep: int) -> torch.Tensor:
+    """(V, 3) the displaced posed mesh of ``timestep`` in world space."""
+    params, camera = frame_at(opened, subject, timestep)
+    return opened.avatar.render(params, camera, gaussians=False).mesh.verts
+
+
+def write_glb_frames(opened: OpenedAvatar, subject, timesteps: list[int], folder: Path) -> None:
+    import cv2
+
+    head = opened.avatar.head
+    rgb = (dc_texture(opened.avatar) * 255 + 0.5).astype(np.uint8)
+    ok, png = cv2.imencode(".png", rgb[..., ::-1])
+    if not ok:
+        raise OSError(f"{folder}: cannot encode the texture as PNG")
+    vertex_index, uv_index, triangles = seam_split(head.faces, head.uv_faces)
+    texcoords = head.uv_coords[uv_index]
+    for t in tracked(timesteps, len(timesteps), "export --glb"):
+        verts = posed_vertices(opened, subject, t).numpy()
+        data = glb_bytes(verts[vertex_index], texcoords, triangles, png.tobytes())
+        (folder / f"{t:05d}.glb").write_bytes(data)
 
 
 def write_maps(opened: OpenedAvatar, folder: Path, half: bool = False) -> None:
