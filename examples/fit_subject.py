@@ -26,12 +26,12 @@ import numpy as np
 import torch
 from tqdm.contrib.logging import logging_redirect_tqdm
 
+from urhead._threads import configure_threads
 from urhead.config import FIT_PRESETS, FitConfig
 from urhead.data import load_subject
 from urhead.data.synthetic import SynthConfig, synthesize
 from urhead.eval.metrics import frame_params
 from urhead.head import procedural_head
-from urhead.train.command import configure_threads
 from urhead.train.trainer import Trainer
 
 BUILT_IN_SUBJECT = SynthConfig(frames=300)

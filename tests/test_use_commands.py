@@ -1,12 +1,15 @@
 """``urhead eval``, ``render`` and ``reenact`` on a small avatar: numbers agree with
-:func:`evaluate_frames`, LPIPS plumbing with weight files on disk, videos have the right
-frame count and size, and bad inputs fail before anything is written."""
+:func:`evaluate_frames`, LPIPS plumbing with weight files on disk, videos are H.264 that
+decodes back to the frames, orbits stay in the captured yaw range, and bad inputs fail
+before anything is written."""
 
 from __future__ import annotations
 
 import itertools
 import json
+import shutil
 
+import av
 import cv2
 import numpy as np
 import pytest
@@ -17,7 +20,10 @@ from urhead.data import load_subject
 from urhead.eval import RefineSettings, evaluate_frames
 from urhead.model import load_avatar
 from urhead.model.avatar import POSE_SIZE
+from urhead.use.common import avatar_camera, open_avatar
 from urhead.use.lpips import VARIANTS, load_lpips
+from urhead.use.orbit import camera_up, default_orbit_angles, head_yaws
+from urhead.use.panels import label_bar_height
 from urhead.use.reenact import driven_params, load_driver
 from use_avatar import make_use_avatar
 
@@ -28,14 +34,20 @@ def use(tmp_path_factory):
 
 
 def read_video(path):
-    capture = cv2.VideoCapture(str(path))
-    frames = []
-    while True:
-        ok, frame = capture.read()
-        if not ok:
-            break
-        frames.append(frame)
-    return frames
+    """Decodes an MP4 with PyAV (FFmpeg), asserting it is H.264 in 4:2:0 (what browsers
+    play); (H, W, 3) uint8 BGR frames."""
+    with av.open(str(path)) as container:
+        stream = container.streams.video[0]
+        assert stream.codec_context.name == "h264"
+        assert stream.codec_context.pix_fmt == "yuv420p"
+        return [f.to_ndarray(format="bgr24") for f in container.decode(stream)]
+
+
+def luma_psnr(a, b):
+    """PSNR of the luma of two BGR images: what 4:2:0 video keeps at full resolution (its
+    half-resolution chroma alone costs ~14 dB on these 64² noise-textured renders)."""
+    ya, yb = (cv2.cvtColor(x, cv2.COLOR_BGR2YCrCb)[..., 0].astype(np.float64) for x in (a, b))
+    return 10 * np.log10(255.0**2 / np.mean((ya - yb) ** 2))
 
 
 def test_eval_matches_evaluate_frames(use, tmp_path, capsys):
@@ -156,12 +168,16 @@ def test_render_frames_and_orbit(use, tmp_path):
     subject = load_subject(use.subject_dir)
     video = read_video(out / "render.mp4")
     assert len(video) == len(subject.test)
-    assert video[0].shape == (64, 4 * 64, 3)
+    bar = label_bar_height(64)
+    assert video[0].shape == (bar + 64, 4 * 64, 3)
     pngs = sorted(p.name for p in (out / "frames").iterdir())
     assert pngs == [f"{t:05d}.png" for t in subject.test.timesteps]
-    row = cv2.imread(str(out / "frames" / pngs[0]))
+    rows = [cv2.imread(str(out / "frames" / name)) for name in pngs]
     truth = (subject.test[0].image.numpy()[..., ::-1] * 255 + 0.5).astype(np.uint8)
-    assert np.array_equal(row[:, :64], truth)  # ground truth on the left
+    assert np.array_equal(rows[0][bar:, :64], truth)  # ground truth on the left
+    assert rows[0][:bar].min() < 128 and rows[0][:bar].max() == 255  # black labels on white
+    for png, decoded in zip(rows, video, strict=True):  # the video is the frames
+        assert luma_psnr(png, decoded) > 30  # observed 33.8–35.3 dB
 
     assert (
         main(
@@ -170,14 +186,50 @@ def test_render_frames_and_orbit(use, tmp_path):
         == 0
     )
     orbit = read_video(out / "orbit_00000.mp4")
-    assert len(orbit) == 6 and orbit[0].shape == (64, 2 * 64, 3)
+    assert len(orbit) == 6 and orbit[0].shape == (bar + 64, 2 * 64, 3)
     views = [cv2.imread(str(out / "orbit_00000" / f"{i:03d}.png")) for i in range(6)]
     # The first view is the frame's own camera: the avatar as rendered there.
     avatar = load_avatar(use.avatar_dir)
     with torch.no_grad():
         image = avatar.render(avatar.frame(0), subject.train[0].camera).image.clamp(0, 1)
-    assert np.array_equal(views[0][:, :64], (image.numpy()[..., ::-1] * 255 + 0.5).astype(np.uint8))
-    assert not np.array_equal(views[0], views[3])  # the view turns
+    expected = (image.numpy()[..., ::-1] * 255 + 0.5).astype(np.uint8)
+    assert np.array_equal(views[0][bar:, :64], expected)
+    assert not np.array_equal(views[0][bar:], views[3][bar:])  # the view turns
+
+
+def test_default_orbit_stays_in_the_captured_yaw_range(use):
+    opened = open_avatar(use.avatar_dir)
+    avatar = opened.avatar
+    camera = avatar_camera(opened, None)
+    e = avatar.num_expr
+    up = camera_up(camera)
+    yaws = head_yaws(avatar.frame_params[:, e:], up)
+    assert yaws.max() - yaws.min() > np.radians(10)  # the fixture's head turns
+    for t in (0, 1, 5):
+        params = avatar.frame(t)
+        here = head_yaws(params.pose[None], up)[0]
+        angles = default_orbit_angles(avatar, params, camera, 24)
+        assert angles[0] == 0  # starts at the frame's own view
+        seen = here - angles  # turning the camera by a shows the head turned by −a
+        assert seen.min() >= yaws.min() - 1e-9 and seen.max() <= yaws.max() + 1e-9
+        # ... and sweeps the whole range (to a step of the path)
+        step = 2 * (yaws.max() - yaws.min()) / 24
+        assert seen.min() <= yaws.min() + step and seen.max() >= yaws.max() - step
+
+
+def test_orbit_of_a_held_out_frame_uses_its_tracked_parameters(use, tmp_path):
+    subject = load_subject(use.subject_dir)
+    t = subject.test.timesteps[0]
+    out = tmp_path / "render"
+    argv = ["render", str(use.avatar_dir), "--out", str(out), "--orbit", str(t)]
+    assert main([*argv, "--orbit-steps", "2"]) == 0
+    view = cv2.imread(str(out / f"orbit_{t:05d}" / "000.png"))
+    avatar = load_avatar(use.avatar_dir)
+    frame = subject.test[0]
+    with torch.no_grad():
+        image = avatar.render(avatar.params_from_flame(frame.flame), frame.camera).image
+    expected = (image.clamp(0, 1).numpy()[..., ::-1] * 255 + 0.5).astype(np.uint8)
+    assert np.array_equal(view[label_bar_height(64) :, :64], expected)
 
 
 def test_reenact_from_subject_and_npz(use, tmp_path):
@@ -186,7 +238,14 @@ def test_reenact_from_subject_and_npz(use, tmp_path):
         main(["reenact", str(use.avatar_dir), "--driver", str(use.subject_dir), "--out", str(out)])
         == 0
     )
-    assert len(read_video(out)) == 10 and read_video(out)[0].shape == (64, 64, 3)
+    video = read_video(out)
+    assert len(video) == 10 and video[0].shape == (64, 64, 3)
+    avatar = load_avatar(use.avatar_dir)
+    camera = avatar_camera(open_avatar(use.avatar_dir), None)
+    with torch.no_grad():
+        first = avatar.render(driven_params(avatar, load_driver(use.subject_dir))[0], camera)
+    expected = (first.image.clamp(0, 1).numpy()[..., ::-1] * 255 + 0.5).astype(np.uint8)
+    assert luma_psnr(video[0], expected) > 30  # H.264 at CRF 18: close to the render
 
     driver = load_driver(use.subject_dir)
     npz = tmp_path / "driver.npz"
@@ -199,7 +258,6 @@ def test_reenact_from_subject_and_npz(use, tmp_path):
     assert main(["reenact", str(use.avatar_dir), "--driver", str(npz), "--out", str(out2)]) == 0
     assert len(read_video(out2)) == 4
 
-    avatar = load_avatar(use.avatar_dir)
     params = driven_params(avatar, load_driver(npz))
     e = avatar.num_expr
     transl = torch.stack([p.transl for p in params])
@@ -240,3 +298,26 @@ def test_bad_inputs_fail_before_writing(use, tmp_path, capsys, command, message)
     assert message in capsys.readouterr().err
     assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
     assert sorted(p.name for p in use.avatar_dir.iterdir()) == before
+
+
+def test_eval_json_to_standard_output(use, capsys):
+    assert main(["eval", str(use.avatar_dir), "--json", "-"]) == 0
+    captured = capsys.readouterr()
+    result = json.loads(captured.out)  # standard output is the JSON alone
+    assert result["frames"] == 3 and result["psnr"] > 0
+    assert "PSNR in mask (dB)" in captured.err  # the table goes to standard error
+    assert not (use.avatar_dir / "eval_test.json").exists()
+
+
+def test_an_avatar_moved_with_its_subject_finds_it(use, tmp_path, capsys):
+    moved = tmp_path / "moved"
+    shutil.copytree(use.avatar_dir, moved / "avatar")
+    shutil.copytree(use.subject_dir, moved / "subject")
+    meta_path = moved / "avatar" / "avatar.json"
+    meta = json.loads(meta_path.read_text())
+    meta["subject"] = str(tmp_path / "gone")  # the absolute path no longer exists
+    meta_path.write_text(json.dumps(meta))
+    assert main(["eval", str(moved / "avatar"), "--json", "-"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["subject"] == str(moved / "avatar" / meta["subject_relative"])
+    assert (moved / "avatar" / meta["subject_relative"]).resolve() == (moved / "subject")

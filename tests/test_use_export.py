@@ -4,10 +4,12 @@ reader and re-rendered, OBJ meshes, EXR maps, and bad inputs."""
 from __future__ import annotations
 
 import numpy as np
+import OpenEXR
 import pytest
 import torch
 
 from urhead.cli import main
+from urhead.data import load_subject
 from urhead.head.objfile import read_obj
 from urhead.model import load_avatar
 from urhead.ops import rasterize_gaussians
@@ -133,27 +135,52 @@ def test_mesh_export_reads_back_as_the_posed_mesh(use, tmp_path):
     assert cv2.imread(str(out / "texture.png")).shape == (64, 64, 3)
 
 
-def test_maps_export_round_trips_through_openexr(use, tmp_path):
+def read_exr(path):
+    """Every channel of an EXR file by its full name, and the header (OpenEXR's reader)."""
+    with OpenEXR.File(str(path), separate_channels=True) as f:
+        return {name: c.pixels for name, c in f.channels().items()}, dict(f.header())
+
+
+@pytest.mark.parametrize("half", [False, True])
+def test_maps_export_round_trips_through_openexr(use, tmp_path, half):
     out = tmp_path / "maps"
-    assert main(["export", str(use.avatar_dir), "--maps", str(out)]) == 0
+    assert main(["export", str(use.avatar_dir), "--maps", str(out)] + ["--half"] * half) == 0
     avatar = load_avatar(use.avatar_dir)
     layout = avatar.layout
     maps = avatar.maps.numpy()
     for name in ("color.png", "normal.png", "displacement.png", "opacity.png", "scale.png"):
         assert (out / name).stat().st_size > 100
-    openexr = pytest.importorskip("OpenEXR")
+    assert sorted(p.name for p in out.glob("*.exr")) == [
+        "color.exr",
+        "displacement.exr",
+        "normal.exr",
+        "opacity.exr",
+        "scale.exr",
+    ]
+    dtype = np.float16 if half else np.float32
 
-    def read(name):
-        channels = openexr.File(str(out / name)).channels()
-        return next(iter(channels.values())).pixels
+    def same(got, want):
+        assert got.dtype == dtype
+        assert np.array_equal(got, np.asarray(want).astype(dtype))
 
+    color, header = read_exr(out / "color.exr")
+    assert header["compression"] == OpenEXR.ZIP_COMPRESSION
     coeffs = maps[..., layout.color].reshape(64, 64, layout.sh_coeffs, 3)
+    assert sorted(color) == sorted(f"sh{k:02d}.{c}" for k in range(layout.sh_coeffs) for c in "RGB")
     for k in range(layout.sh_coeffs):
-        assert np.array_equal(read(f"color_sh{k:02d}.exr"), coeffs[:, :, k])
-    assert np.array_equal(read("normal.exr"), maps[..., layout.normal])
-    assert np.array_equal(read("displacement.exr"), maps[..., layout.displacement])
-    assert np.array_equal(read("opacity.exr"), maps[..., layout.opacity])
-    assert np.array_equal(read("scale.exr"), maps[..., layout.scale])
+        for i, c in enumerate("RGB"):
+            same(color[f"sh{k:02d}.{c}"], coeffs[:, :, k, i])
+    normal, _ = read_exr(out / "normal.exr")
+    for i, c in enumerate("RGB"):
+        same(normal[c], maps[..., layout.normal][..., i])
+    same(read_exr(out / "displacement.exr")[0]["Y"], maps[..., layout.displacement])
+    same(read_exr(out / "opacity.exr")[0]["Y"], maps[..., layout.opacity])
+    scale, _ = read_exr(out / "scale.exr")
+    for i, c in enumerate("RGB"):
+        same(scale[c], maps[..., layout.scale][..., i])
+    channels = sum(len(read_exr(p)[0]) for p in out.glob("*.exr"))
+    uncompressed = channels * 64 * 64 * np.dtype(dtype).itemsize
+    assert sum(p.stat().st_size for p in out.glob("*.exr")) < uncompressed
 
 
 @pytest.mark.parametrize(
@@ -177,3 +204,92 @@ def test_export_missing_avatar(tmp_path, capsys):
     assert main(["export", str(tmp_path / "nope"), "--ply", str(out)]) == 1
     assert "no such directory" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_export_accepts_held_out_timesteps_like_render_orbit(use, tmp_path):
+    subject = load_subject(use.subject_dir)
+    held_out = subject.test.timesteps[0]
+    out = tmp_path / "mesh"
+    assert main(["export", str(use.avatar_dir), "--mesh", str(out), "--frames", str(held_out)]) == 0
+    avatar = load_avatar(use.avatar_dir)
+    frame = subject.test[0]
+    with torch.no_grad():  # posed by the frame's tracked FLAME parameters
+        verts = avatar.render(avatar.params_from_flame(frame.flame), frame.camera).mesh.verts
+    mesh = read_obj(out / f"{held_out:05d}.obj")
+    assert np.abs(mesh.vertices - verts.double().numpy()).max() < 1e-6
+
+
+def read_glb(path):
+    """An independent GLB reader: the JSON document and each accessor as a numpy array,
+    and the embedded image's bytes."""
+    import json
+    import struct
+
+    data = path.read_bytes()
+    magic, version, total = struct.unpack_from("<4sII", data)
+    assert (magic, version, total) == (b"glTF", 2, len(data))
+    json_len, json_type = struct.unpack_from("<I4s", data, 12)
+    assert json_type == b"JSON"
+    doc = json.loads(data[20 : 20 + json_len])
+    bin_len, bin_type = struct.unpack_from("<I4s", data, 20 + json_len)
+    assert bin_type == b"BIN\0"
+    blob = data[28 + json_len : 28 + json_len + bin_len]
+    kinds = {5126: "<f4", 5125: "<u4"}
+    widths = {"SCALAR": 1, "VEC2": 2, "VEC3": 3}
+
+    def accessor(i):
+        a = doc["accessors"][i]
+        view = doc["bufferViews"][a["bufferView"]]
+        raw = blob[view["byteOffset"] : view["byteOffset"] + view["byteLength"]]
+        return np.frombuffer(raw, kinds[a["componentType"]]).reshape(a["count"], -1)
+
+    image_view = doc["bufferViews"][doc["images"][0]["bufferView"]]
+    png = blob[image_view["byteOffset"] : image_view["byteOffset"] + image_view["byteLength"]]
+    primitive = doc["meshes"][0]["primitives"][0]
+    arrays = {name: accessor(i) for name, i in primitive["attributes"].items()}
+    arrays["indices"] = accessor(primitive["indices"]).reshape(-1, 3)
+    for name, i in primitive["attributes"].items():
+        assert arrays[name].shape[1] == widths[doc["accessors"][i]["type"]]
+    return doc, arrays, png
+
+
+def test_glb_export_is_the_posed_mesh_with_its_texture(use, tmp_path):
+    import cv2
+
+    out, mesh_out = tmp_path / "glb", tmp_path / "mesh"
+    argv = ["export", str(use.avatar_dir), "--frames", f"{JAW_TIMESTEP}"]
+    assert main([*argv, "--glb", str(out), "--mesh", str(mesh_out)]) == 0
+    avatar = load_avatar(use.avatar_dir)
+    head = avatar.head
+    camera = avatar_camera(open_avatar(use.avatar_dir), None)
+    with torch.no_grad():
+        verts = avatar.render(avatar.frame(JAW_TIMESTEP), camera, gaussians=False).mesh.verts
+    doc, arrays, png = read_glb(out / f"{JAW_TIMESTEP:05d}.glb")
+    assert doc["materials"][0]["extensions"] == {"KHR_materials_unlit": {}}
+    tri = arrays["indices"].astype(np.int64)
+    assert tri.shape == head.faces.shape
+    # Every triangle corner has the mesh vertex and the UV of the OBJ face it comes from.
+    corners = arrays["POSITION"][tri]
+    assert np.abs(corners - verts.numpy()[head.faces]).max() < 1e-6
+    uv = arrays["TEXCOORD_0"][tri]
+    flipped = head.uv_coords[head.uv_faces] * [1, -1] + [0, 1]  # glTF: v down from the top
+    assert np.abs(uv - flipped).max() < 1e-6
+    accessor = doc["accessors"][doc["meshes"][0]["primitives"][0]["attributes"]["POSITION"]]
+    assert np.allclose(accessor["min"], arrays["POSITION"].min(0))
+    # Seams split only where a vertex has several UVs.
+    assert len(arrays["POSITION"]) == len(
+        {(v, t) for v, t in zip(head.faces.ravel(), head.uv_faces.ravel(), strict=True)}
+    )
+    texture = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    assert np.array_equal(texture, cv2.imread(str(mesh_out / "texture.png")))
+
+
+def test_glb_opens_in_trimesh(use, tmp_path):
+    trimesh = pytest.importorskip("trimesh")  # an independent glTF reader, when installed
+    out = tmp_path / "glb"
+    assert main(["export", str(use.avatar_dir), "--glb", str(out), "--frames", "0"]) == 0
+    scene = trimesh.load(out / "00000.glb")
+    mesh = next(iter(scene.geometry.values()))
+    avatar = load_avatar(use.avatar_dir)
+    assert len(mesh.faces) == len(avatar.head.faces)
+    assert mesh.visual.material.baseColorTexture.size == (64, 64)

@@ -1,6 +1,7 @@
 """A small avatar for the ``urhead eval/render/reenact/export`` tests: a 64² synthetic
 subject and an untrained 64² avatar whose maps are randomised (so every SH band, opacity
-and scale carries signal), saved with its subject and camera like a fit's."""
+and scale carries signal), saved with its subject (absolute and relative paths) and camera
+like a fit's."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from urhead.data.synthetic import SynthConfig, synthesize
 from urhead.head import procedural_head
 from urhead.model import build_avatar, save_avatar
 from urhead.model.avatar import POSE_SIZE
+from urhead.use.common import subject_record
 
 TINY = SynthConfig(
     frames=10, resolution=64, seed=5, difficulty="easy", samples_per_side=1, edge_samples_per_side=1
@@ -67,7 +69,7 @@ def make_use_avatar(root: Path) -> UseAvatar:
         avatar,
         root / "avatar",
         extra={
-            "subject": str(subject_dir.resolve()),
+            **subject_record(root / "avatar", subject_dir),
             "camera": subject.train.records[0].camera.to_dict(),
         },
     )

@@ -26,13 +26,21 @@ def _flag(name: str) -> str:
     return "--" + name.replace("_", "-")
 
 
-def add_arguments(parser: argparse.ArgumentParser, cls: type) -> None:
+def add_arguments(
+    parser: argparse.ArgumentParser, cls: type, presets: dict[str, dict] | None = None
+) -> None:
     """Adds one option per field of the dataclass ``cls``; defaults are left as None so
-    presets can tell what the user set explicitly."""
+    presets can tell what the user set explicitly. The help names the field's default and
+    each preset's value where a preset changes it."""
     hints = typing.get_type_hints(cls)
     for f in fields(cls):
         kind = hints[f.name]
-        help_text = f"{f.metadata.get('help', '')} (default: {f.default})"
+        overrides = "".join(
+            f"; --preset {name}: {values[f.name]}"
+            for name, values in (presets or {}).items()
+            if f.name in values
+        )
+        help_text = f"{f.metadata.get('help', '')} (default: {f.default}{overrides})"
         if kind is bool:
             parser.add_argument(
                 _flag(f.name),

@@ -1,5 +1,5 @@
-"""PNG reading and writing for datasets: a cheap header check used at load time, and
-decoding that names the file on any failure."""
+"""PNG (and EXR normal map) reading and writing for datasets: a cheap header check used
+at load time, and decoding that names the file on any failure."""
 
 from __future__ import annotations
 
@@ -77,3 +77,35 @@ def write_png(path: Path, pixels: np.ndarray) -> None:
 def to_uint8(values: np.ndarray) -> np.ndarray:
     """Float values in [0, 1] → uint8 with rounding (values outside are clipped)."""
     return np.clip(np.rint(np.asarray(values, np.float32) * 255.0), 0, 255).astype(np.uint8)
+
+
+def exr_size(path: Path) -> tuple[int, int]:
+    """(width, height) from an EXR header (the pixels are not read), or a
+    :class:`DatasetError`."""
+    import OpenEXR
+
+    if not path.is_file():
+        raise MissingFileError(path, "file not found")
+    try:
+        with OpenEXR.File(str(path), header_only=True) as f:
+            (x0, y0), (x1, y1) = f.header()["dataWindow"]
+    except (RuntimeError, KeyError, ValueError) as e:
+        raise DatasetError(path, f"not a readable EXR file ({e})") from None
+    return int(x1 - x0 + 1), int(y1 - y0 + 1)
+
+
+def read_exr_rgb(path: Path) -> np.ndarray:
+    """The R, G, B channels of an EXR file (half or float) as (H, W, 3) float32."""
+    import OpenEXR
+
+    if not path.is_file():
+        raise MissingFileError(path, "file not found")
+    try:
+        with OpenEXR.File(str(path), separate_channels=True) as f:
+            channels = {name: c.pixels for name, c in f.channels().items()}
+    except RuntimeError as e:
+        raise DatasetError(path, f"not a readable EXR file ({e})") from None
+    missing = [c for c in "RGB" if c not in channels]
+    if missing:
+        raise DatasetError(path, f"has no channel(s) {missing} (has {sorted(channels)})")
+    return np.stack([channels[c] for c in "RGB"], -1).astype(np.float32)

@@ -153,7 +153,21 @@ def decode_normals(rgb: np.ndarray) -> np.ndarray:
     """Inverse of :func:`encode_normals`: (H, W, 3) uint8 → (H, W, 3) float32 unit normals
     in OpenCV camera axes, zero where undefined."""
     valid = np.any(rgb != 0, axis=-1, keepdims=True)
-    gl = rgb.astype(np.float32) / 127.5 - 1.0
+    return _opengl_to_opencv(rgb.astype(np.float32) / 127.5 - 1.0, valid)
+
+
+def decode_float_normals(gl: np.ndarray) -> np.ndarray:
+    """Float normal maps (EXR): (H, W, 3) OpenGL-axes normals (x, −y, −z) stored as they
+    are, in [−1, 1] → (H, W, 3) float32 unit normals in OpenCV camera axes; (0, 0, 0) and
+    non-finite pixels mark pixels without a normal."""
+    gl = np.asarray(gl, np.float32)
+    valid = np.all(np.isfinite(gl), axis=-1, keepdims=True) & np.any(
+        gl != 0, axis=-1, keepdims=True
+    )
+    return _opengl_to_opencv(np.where(valid, gl, 0.0), valid)
+
+
+def _opengl_to_opencv(gl: np.ndarray, valid: np.ndarray) -> np.ndarray:
     n = gl * np.array([1.0, -1.0, -1.0], np.float32)
     norm = np.linalg.norm(n, axis=-1, keepdims=True)
     n = n / np.maximum(norm, 1e-6)

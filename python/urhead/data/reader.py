@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from urhead.camera import Camera
-from urhead.data.images import png_size, read_png, read_png_uint8
+from urhead.data.images import exr_size, png_size, read_exr_rgb, read_png, read_png_uint8
 from urhead.data.layout import (
     CANONICAL_FLAME,
     FLAME_OPTIONAL_SHAPES,
@@ -34,6 +34,7 @@ from urhead.data.layout import (
     DatasetError,
     MissingFileError,
     check_flame_params,
+    decode_float_normals,
     decode_normals,
 )
 
@@ -387,10 +388,12 @@ def _frame_record(root, path, i, frame, meta, cameras) -> FrameRecord:
     if normals_path.is_file():
         _check_png(normals_path, width, height, f"normal map of {where} in {path.name}")
     elif normals_path.with_suffix(".exr").is_file():
-        raise DatasetError(
-            normals_path.with_suffix(".exr"),
-            "EXR normal maps are not supported (OpenCV here has no OpenEXR); store them as PNG",
-        )
+        normals_path = normals_path.with_suffix(".exr")
+        size = exr_size(normals_path)
+        if size != (width, height):
+            raise DatasetError(
+                normals_path, f"is {size[0]}×{size[1]} but the transforms say {width}×{height}"
+            )
     else:
         normals_path = None
     original = frame.get("timestep_index_original", timestep)
@@ -444,6 +447,8 @@ def _read_all_flame(paths: list[Path]) -> dict[Path, dict]:
 
 
 def _read_normals(path: Path, h: int, w: int) -> np.ndarray:
+    if path.suffix == ".exr":
+        return decode_float_normals(read_exr_rgb(path))
     rgb = read_png_uint8(path)
     if rgb.shape != (h, w, 3):
         raise DatasetError(path, f"must be an RGB image of {w}×{h}, got {rgb.shape}")

@@ -4,24 +4,9 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 from pathlib import Path
 
 from urhead.config import FIT_PRESETS, FitConfig, add_arguments, from_arguments
-
-
-def configure_threads(kernel_threads: int | None = None) -> None:
-    """Rust kernels get ``kernel_threads`` (default: an explicit ``URHEAD_NUM_THREADS``,
-    else every core); torch gets one thread. torch's OpenMP workers spin after each op and,
-    on a small machine, starve the Rust pool (measured: up to 2× slower iterations on 2
-    cores); the few torch ops of the loop are cheap single-threaded."""
-    import torch
-
-    if kernel_threads is None:
-        os.environ.setdefault("URHEAD_NUM_THREADS", str(os.cpu_count() or 1))
-    else:
-        os.environ["URHEAD_NUM_THREADS"] = str(kernel_threads)
-    torch.set_num_threads(1)
 
 
 def add_fit_options(p: argparse.ArgumentParser) -> None:
@@ -32,14 +17,20 @@ def add_fit_options(p: argparse.ArgumentParser) -> None:
         default=None,
         help="head model .npz (urhead convert-flame output); default: the built-in procedural head",
     )
-    p.add_argument("--preset", choices=sorted(FIT_PRESETS), default="paper")
+    p.add_argument(
+        "--preset",
+        choices=sorted(FIT_PRESETS),
+        default="paper",
+        help="schedule and resolution: the paper's, or quick (minutes on 2 cores); an "
+        "option below overrides its preset value",
+    )
     p.add_argument(
         "--test-last",
         type=int,
         default=None,
         help="hold out the last N timesteps of transforms.json instead of the split files",
     )
-    add_arguments(p, FitConfig)
+    add_arguments(p, FitConfig, FIT_PRESETS)
 
 
 def fit_config(args: argparse.Namespace) -> FitConfig:
@@ -62,10 +53,15 @@ def fit_subject(
     from urhead.data import load_subject
     from urhead.head import load_head, procedural_head
     from urhead.train.trainer import Trainer
+    from urhead.use.common import add_subject_record
 
     subject = load_subject(subject_dir, test_last=test_last)
     head = load_head(head_path) if head_path is not None else procedural_head(0)
-    return Trainer(subject, head, config, out, progress=progress).run(resume=resume)
+    result = Trainer(subject, head, config, out, progress=progress).run(resume=resume)
+    # The trainer records the subject's absolute path; the relative one lets an avatar
+    # moved together with its subject find it.
+    add_subject_record(result.out / "avatar", subject.root)
+    return result
 
 
 def add_parser(subparsers) -> None:
@@ -83,13 +79,22 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_fit_options(p)
-    p.set_defaults(run=run)
+    p.set_defaults(run=run, resume_hint=resume_hint)
+
+
+def resume_hint(args: argparse.Namespace) -> str:
+    """What Ctrl-C leaves behind and how to continue from it."""
+    from urhead.train.checkpoint import find_checkpoint
+
+    found = find_checkpoint(Path(args.out))
+    if found is None:
+        return "No checkpoint was written yet; run the same command again to start over."
+    return f"The last checkpoint is {found}; continue with the same command and --resume."
 
 
 def run(args: argparse.Namespace) -> int:
     config = fit_config(args)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    configure_threads()
     from tqdm.contrib.logging import logging_redirect_tqdm
 
     with logging_redirect_tqdm():  # log lines above the progress bar, not through it
@@ -104,8 +109,13 @@ def run(args: argparse.Namespace) -> int:
         )
     m = result.metrics
     print(
-        f"held-out PSNR {m['psnr']:.2f} dB (mesh only {m['psnr_mesh_only']:.2f}), "
-        f"SSIM {m['ssim']:.4f}, {m['num_gaussians']} Gaussians, {m['seconds']:.0f} s; "
-        f"wrote {result.out / 'avatar'}"
+        f"held-out PSNR {m['psnr']:.2f} dB in the mask ({m['psnr_full']:.2f} full image; "
+        f"after test-time refinement {_db(m['psnr_refined'])} / {_db(m['psnr_refined_full'])}), "
+        f"mesh only {m['psnr_mesh_only']:.2f}, SSIM {m['ssim']:.4f}, {m['num_gaussians']} "
+        f"Gaussians, {m['seconds']:.0f} s; wrote {result.out / 'avatar'}"
     )
     return 0
+
+
+def _db(value) -> str:
+    return "off" if value is None else f"{value:.2f}"

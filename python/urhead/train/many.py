@@ -21,8 +21,9 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+from urhead._threads import configure_threads
 from urhead.config import FitConfig
-from urhead.train.command import add_fit_options, configure_threads, fit_config, fit_subject
+from urhead.train.command import add_fit_options, fit_config, fit_subject
 from urhead.train.summary import Summary
 
 # Ray re-runs a task whose worker process or node died (not one that raised); each re-run

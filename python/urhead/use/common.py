@@ -46,16 +46,49 @@ def open_subject(opened: OpenedAvatar, subject: Path | None, *, required: bool =
     from urhead.data import load_subject
 
     if subject is None:
-        recorded = opened.meta.get("subject")
-        if recorded is None or not Path(recorded).is_dir():
+        candidates = recorded_subject_paths(opened)
+        subject = next((p for p in candidates if p.is_dir()), None)
+        if subject is None:
             if not required:
                 return None
-            where = "records no subject" if recorded is None else f"records {recorded}, gone"
+            where = (
+                "records no subject"
+                if not candidates
+                else "records " + " and ".join(map(str, candidates)) + ", gone"
+            )
             raise InvalidArgumentError(f"--subject is required: the avatar {where}")
-        subject = Path(recorded)
     if not Path(subject).is_dir():
         raise FileNotFoundError(f"--subject {subject}: no such directory")
     return load_subject(subject)
+
+
+def recorded_subject_paths(opened: OpenedAvatar) -> list[Path]:
+    """Where avatar.json says the subject is: ``subject_relative`` (relative to the avatar
+    directory, so an avatar moved together with its subject still finds it), then
+    ``subject`` (absolute; a relative one is taken relative to the avatar directory)."""
+    paths = []
+    for key in ("subject_relative", "subject"):
+        value = opened.meta.get(key)
+        if isinstance(value, str) and value:
+            p = Path(value)
+            paths.append(p if p.is_absolute() else opened.path / p)
+    return paths
+
+
+def subject_record(avatar_dir: Path, subject_root: Path) -> dict:
+    """The avatar.json entries that locate a subject: absolute, and relative to the
+    avatar directory."""
+    absolute = Path(subject_root).resolve()
+    relative = os.path.relpath(absolute, Path(avatar_dir).resolve())
+    return {"subject": str(absolute), "subject_relative": relative}
+
+
+def add_subject_record(avatar_dir: Path, subject_root: Path) -> None:
+    """Adds :func:`subject_record` to an avatar's avatar.json (rewritten atomically)."""
+    meta_path = Path(avatar_dir) / "avatar.json"
+    meta = json.loads(meta_path.read_text())
+    meta.update(subject_record(avatar_dir, subject_root))
+    write_file_atomically(meta_path, lambda tmp: tmp.write_text(json.dumps(meta, indent=2)))
 
 
 def add_background_option(parser) -> None:
@@ -103,10 +136,47 @@ def avatar_camera(opened: OpenedAvatar, subject) -> Camera:
     raise InvalidArgumentError("--subject is required: the avatar records no camera to render from")
 
 
-def parse_timesteps(spec: str | None, available: torch.Tensor) -> list[int]:
+def subject_records(subject) -> dict:
+    """Every frame record of the subject by timestep (train first, then val, then test)."""
+    records = {}
+    if subject is not None:
+        for split in (subject.train, subject.val, subject.test):
+            for r in split.records:
+                records.setdefault(r.timestep, r)
+    return records
+
+
+def frame_at(opened: OpenedAvatar, subject, timestep: int):
+    """``(params, camera)`` of ``timestep``: the avatar's trained row if it is a training
+    frame, else the subject frame's tracked FLAME parameters (held-out timesteps); the
+    camera is the subject frame's, else the avatar's."""
+    avatar = opened.avatar
+    record = subject_records(subject).get(timestep)
+    if bool((avatar.timesteps == timestep).any()):
+        params = avatar.frame(timestep)
+    elif record is not None:
+        params = avatar.params_from_flame(subject.flame[record.flame_path])
+    else:
+        raise InvalidArgumentError(
+            f"timestep {timestep} is not a frame of the avatar"
+            + ("" if subject is None else f" or of the subject {subject.root}")
+        )
+    camera = record.camera if record is not None else avatar_camera(opened, subject)
+    return params, camera
+
+
+def selectable_timesteps(opened: OpenedAvatar, subject) -> list[int]:
+    """The timesteps :func:`frame_at` can pose: the avatar's and the subject's."""
+    avatar_steps = {int(t) for t in opened.avatar.timesteps.tolist()}
+    return sorted(avatar_steps | set(subject_records(subject)))
+
+
+def parse_timesteps(spec: str | None, available, default=None) -> list[int]:
     """``--frames`` "0,3,10-20" (timesteps, ranges inclusive) → sorted unique timesteps, all
-    of which must be among ``available``; None → all of them."""
-    known = sorted(int(t) for t in available.tolist())
+    of which must be among ``available``; None → ``default`` (else all of ``available``)."""
+    known = sorted(int(t) for t in available)
+    if spec is None and default is not None:
+        return sorted(int(t) for t in default)
     if spec is None:
         return known
     wanted: set[int] = set()
@@ -121,8 +191,8 @@ def parse_timesteps(spec: str | None, available: torch.Tensor) -> list[int]:
     unknown = sorted(wanted - set(known))
     if unknown:
         raise InvalidArgumentError(
-            f"--frames: timesteps {_short(unknown)} are not frames of this avatar "
-            f"(it has {len(known)} timesteps, {known[0]}–{known[-1]})"
+            f"--frames: timesteps {_short(unknown)} are not frames of this avatar or its "
+            f"subject ({len(known)} timesteps, {known[0]}–{known[-1]})"
         )
     return sorted(wanted)
 
@@ -154,11 +224,13 @@ def temporary_sibling(path: Path) -> Path:
 
 
 def write_file_atomically(path: Path, write) -> None:
-    """Calls ``write(tmp_path)``, then renames the file into place."""
+    """Calls ``write(tmp_path)``, flushes the file to disk, then renames it into place."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = temporary_sibling(path)
     try:
         write(tmp)
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)

@@ -4,7 +4,9 @@ a subject's held-out frames (FORMATS.md "Evaluation protocol").
 Metrics are on the subject's background (the avatar's ``background``), inside the frame's
 head mask unless named ``*_full`` (the whole image, the convention of the INSTA / URHead
 tables): PSNR and SSIM (:mod:`urhead.losses`), PSNR of the mesh branch alone,
-LPIPS-alex / LPIPS-vgg when their weights are on disk (:mod:`urhead.use.lpips`). Held-out
+LPIPS-alex / LPIPS-vgg when their weights are on disk (:mod:`urhead.use.lpips`),
+ST-LPIPS-alex (``stlpips_alex``, shift-tolerant LPIPS from the weights the
+``stlpips-pytorch`` wheel ships, :mod:`urhead.use.stlpips`; lower is better). Held-out
 frames are scored with their tracked FLAME parameters; with ``--refine-flame`` also after
 test-time refinement of each held-out frame's FLAME row against the frozen avatar
 (``psnr_refined``, ``psnr_refined_full``, ``ssim_refined``; :mod:`urhead.eval.refine`).
@@ -16,6 +18,7 @@ Temporal stability, over consecutive frame pairs (same camera, timesteps t−1 a
 - ``temporal_lpips_<variant>``: |LPIPS(Î_t, Î_{t−1}) − LPIPS(I_t, I_{t−1})|, how much more
   (or less) the rendering changes perceptually between frames than the video does; only
   with LPIPS weights.
+- ``temporal_stlpips_alex``: the same with ST-LPIPS.
 Each is reported as mean and variance over the pairs.
 
 Speed: the median over frames of one forward render (no gradients, after one warm-up
@@ -28,11 +31,14 @@ import argparse
 import json
 import math
 import statistics
+import sys
 import time
 from pathlib import Path
 
 import torch
 
+from urhead._progress import progress as progress_bar
+from urhead._progress import tracked
 from urhead.eval import RefineSettings, evaluate_frames, refine_params_of
 from urhead.eval.metrics import frame_params
 from urhead.losses import psnr, ssim
@@ -63,7 +69,9 @@ def add_parser(subparsers) -> None:
         default=None,
         help="subject folder (default: the one the fit recorded)",
     )
-    p.add_argument("--split", choices=("test", "val", "train"), default="test")
+    p.add_argument(
+        "--split", choices=("test", "val", "train"), default="test", help="frames to score"
+    )
     p.add_argument(
         "--lpips-weights",
         type=Path,
@@ -72,7 +80,18 @@ def add_parser(subparsers) -> None:
         help="folder with alex.pth/vgg.pth (lpips v0.1) and alexnet*.pth/vgg16*.pth "
         "(torchvision); default $URHEAD_LPIPS_DIR, then ~/.cache/urhead/lpips",
     )
-    p.add_argument("--json", type=Path, default=None, help="where to write the JSON")
+    p.add_argument(
+        "--json",
+        default=None,
+        metavar="FILE",
+        help="where to write the JSON, '-' for standard output (the table then goes to "
+        "standard error); default: AVATAR/eval_SPLIT.json",
+    )
+    p.add_argument(
+        "--no-stlpips",
+        action="store_true",
+        help="skip ST-LPIPS (about 3 s per frame at 512² on 2 cores)",
+    )
     p.add_argument(
         "--refine-flame",
         action="store_true",
@@ -90,30 +109,37 @@ def add_parser(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from urhead.train.command import configure_threads
     from urhead.use.lpips import load_lpips
+    from urhead.use.stlpips import load_stlpips
 
     opened = open_avatar(args.avatar)
-    out = check_output_file(
-        args.json if args.json is not None else opened.path / f"eval_{args.split}.json",
-        "--json",
-        ".json",
-    )
+    to_stdout = args.json == "-"
+    if not to_stdout:
+        out = check_output_file(
+            Path(args.json) if args.json is not None else opened.path / f"eval_{args.split}.json",
+            "--json",
+            ".json",
+        )
+    report = sys.stderr if to_stdout else sys.stdout  # standard output holds only the JSON
     subject = open_subject(opened, args.subject)
     use_background(opened, subject, args.background)
     frames = split_frames(subject, args.split)
     nets, notes = load_lpips(args.lpips_weights)
+    stlpips = None
+    if not args.no_stlpips:
+        stlpips, note = load_stlpips()
+        notes += [note] if note else []
     for note in notes:
-        print(note)
+        print(note, file=report)
     if args.refine_steps < 0:
         raise SystemExit(f"--refine-steps must be >= 0, got {args.refine_steps}")
-    configure_threads()
     refine = RefineSettings(steps=args.refine_steps) if args.refine_flame else None
     result = evaluate_avatar(
         opened.avatar,
         frames,
         occlusion_aware=opened.occlusion_aware,
         lpips=nets,
+        stlpips=stlpips,
         refine=refine,
         progress=True,
     )
@@ -123,9 +149,13 @@ def run(args: argparse.Namespace) -> int:
         split=args.split,
         lpips_skipped=notes,
     )
-    write_file_atomically(out, lambda tmp: tmp.write_text(json.dumps(result, indent=2)))
-    print(format_table(result))
-    print(f"wrote {out}")
+    text = json.dumps(result, indent=2)
+    print(format_table(result), file=report)
+    if to_stdout:
+        print(text, flush=True)
+    else:
+        write_file_atomically(out, lambda tmp: tmp.write_text(text))
+        print(f"wrote {out}")
     return 0
 
 
@@ -135,20 +165,26 @@ def evaluate_avatar(
     *,
     occlusion_aware: bool = True,
     lpips=None,
+    stlpips=None,
     refine: RefineSettings | None = None,
     progress: bool = False,
 ) -> dict:
     """Scores ``frames`` (dataset frames with image, mask, camera, flame); ``lpips`` maps a
-    variant name ("alex", "vgg") to a scorer ``(image, target, mask) -> float``; with
-    ``refine`` also after test-time refinement. Returns the JSON-ready metrics (module
-    docstring)."""
+    variant name ("alex", "vgg") to a scorer ``(image, target, mask) -> float``;
+    ``stlpips`` is a :class:`~urhead.use.stlpips.StLpips` or None; with ``refine`` also
+    after test-time refinement. Returns the JSON-ready metrics (module docstring)."""
     if len(frames) == 0:
         raise ValueError("frames is empty: nothing to evaluate")
-    result = _evaluate(avatar, frames, occlusion_aware=occlusion_aware, lpips=lpips or {})
+    result = _evaluate(
+        avatar,
+        frames,
+        occlusion_aware=occlusion_aware,
+        lpips=lpips or {},
+        stlpips=stlpips,
+        progress=progress,
+    )
     if refine is not None and refine.steps > 0:
-        from tqdm import tqdm
-
-        with tqdm(total=len(frames), desc="refine", unit="frame", disable=not progress) as bar:
+        with progress_bar(len(frames), "refine", enabled=progress) as bar:
             params = refine_params_of(
                 avatar, frames, refine, occlusion_aware, progress=lambda: bar.update(1)
             )
@@ -166,15 +202,20 @@ def evaluate_avatar(
 
 
 @torch.no_grad()
-def _evaluate(avatar, frames, *, occlusion_aware: bool, lpips: dict) -> dict:
+def _evaluate(
+    avatar, frames, *, occlusion_aware: bool, lpips: dict, stlpips, progress: bool
+) -> dict:
     first = frames[0]
     avatar.render(frame_params(avatar, first), first.camera, occlusion_aware=occlusion_aware)
     per = {"psnr": [], "psnr_full": [], "ssim": [], "psnr_mesh_only": [], "seconds": []}
     per.update({f"lpips_{v}": [] for v in lpips})
+    per["stlpips_alex"] = []
     temporal = {"temporal_error_change": []}
     temporal.update({f"temporal_lpips_{v}": [] for v in ("alex", "vgg")})
+    temporal["temporal_stlpips_alex"] = []
+    features = None  # ST-LPIPS features of this frame's (render, ground truth)
     previous = None
-    for frame in frames:
+    for frame in tracked(frames, len(frames), "eval", enabled=progress):
         params = frame_params(avatar, frame)
         start = time.perf_counter()
         out = avatar.render(params, frame.camera, occlusion_aware=occlusion_aware)
@@ -188,6 +229,10 @@ def _evaluate(avatar, frames, *, occlusion_aware: bool, lpips: dict) -> dict:
         )
         for v, net in lpips.items():
             per[f"lpips_{v}"].append(net(image, frame.image, frame.mask))
+        previous_features = features
+        if stlpips is not None:
+            features = (stlpips.features(image), stlpips.features(frame.image))
+            per["stlpips_alex"].append(stlpips.distance(*features, frame.mask))
         if previous is not None and _consecutive(previous[0], frame):
             prev_frame, prev_image = previous
             mask = frame.mask * prev_frame.mask
@@ -197,6 +242,10 @@ def _evaluate(avatar, frames, *, occlusion_aware: bool, lpips: dict) -> dict:
                 ours = net(image, prev_image, mask)
                 truth = net(frame.image, prev_frame.image, mask)
                 temporal[f"temporal_lpips_{v}"].append(abs(ours - truth))
+            if stlpips is not None:
+                ours = stlpips.distance(features[0], previous_features[0], mask)
+                truth = stlpips.distance(features[1], previous_features[1], mask)
+                temporal["temporal_stlpips_alex"].append(abs(ours - truth))
         previous = (frame, image)
     median = statistics.median(per["seconds"])
     result = {
@@ -211,6 +260,7 @@ def _evaluate(avatar, frames, *, occlusion_aware: bool, lpips: dict) -> dict:
     }
     for v in ("alex", "vgg"):
         result[f"lpips_{v}"] = _mean(per[f"lpips_{v}"]) if v in lpips else None
+    result["stlpips_alex"] = _mean(per["stlpips_alex"]) if stlpips is not None else None
     for key, values in temporal.items():
         result[f"{key}_mean"] = _mean(values) if values else None
         result[f"{key}_var"] = _var(values) if values else None
@@ -229,6 +279,7 @@ def _evaluate(avatar, frames, *, occlusion_aware: bool, lpips: dict) -> dict:
             "timestep": [f.timestep for f in frames],
             "psnr": per["psnr"],
             "ssim": per["ssim"],
+            "stlpips_alex": per["stlpips_alex"] if stlpips is not None else None,
         },
     )
     return result
@@ -269,20 +320,20 @@ def format_table(r: dict) -> str:
         ("PSNR mesh only (dB)", fmt(r["psnr_mesh_only"], ".3f")),
         ("LPIPS alex", fmt(r["lpips_alex"], ".4f")),
         ("LPIPS vgg", fmt(r["lpips_vgg"], ".4f")),
+        ("ST-LPIPS alex", fmt(r.get("stlpips_alex"), ".4f")),
         (
             "temporal error change",
             f"{fmt(r['temporal_error_change_mean'], '.5f')} "
             f"(var {fmt(r['temporal_error_change_var'], '.2e')}, {r['temporal_pairs']} pairs)",
         ),
     ]
-    for v in ("alex", "vgg"):
-        if r.get(f"temporal_lpips_{v}_mean") is not None:
-            rows.append(
-                (
-                    f"temporal LPIPS {v}",
-                    f"{r[f'temporal_lpips_{v}_mean']:.5f} (var {r[f'temporal_lpips_{v}_var']:.2e})",
-                )
-            )
+    for key, name in (
+        ("temporal_lpips_alex", "temporal LPIPS alex"),
+        ("temporal_lpips_vgg", "temporal LPIPS vgg"),
+        ("temporal_stlpips_alex", "temporal ST-LPIPS alex"),
+    ):
+        if r.get(f"{key}_mean") is not None:
+            rows.append((name, f"{r[f'{key}_mean']:.5f} (var {r[f'{key}_var']:.2e})"))
     w, h = r["resolution"]
     rows += [
         (f"render FPS ({w}×{h})", f"{r['render_fps']:.1f} ({r['render_ms_median']:.1f} ms median)"),

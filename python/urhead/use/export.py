@@ -8,9 +8,15 @@
   and eyes) that rotation is exact, so the file renders the avatar's Gaussian layer.
 - ``--mesh DIR``: ``DIR/{timestep:05d}.obj`` per frame (displaced posed mesh with the
   FLAME UV layout), one ``material.mtl`` and ``texture.png`` (the colour map's DC term).
-- ``--maps DIR``: every UV map as float EXR (``color_sh{k:02d}.exr`` RGB per SH
-  coefficient, ``normal.exr``, ``displacement.exr``, ``opacity.exr`` logits,
-  ``scale.exr`` log standard deviations) plus PNG previews, image row 0 at v = 1.
+- ``--glb DIR``: ``DIR/{timestep:05d}.glb`` per frame, binary glTF of the same mesh with
+  the DC colour map embedded as an unlit texture (:mod:`urhead.use.glb`).
+- ``--maps DIR``: every UV map as ZIP-compressed float EXR (``--half``: 16-bit floats):
+  ``color.exr`` with one layer per SH coefficient (``sh00.R`` … ``shKK.B``),
+  ``normal.exr``, ``displacement.exr``, ``opacity.exr`` logits, ``scale.exr`` log
+  standard deviations; plus PNG previews, image row 0 at v = 1.
+
+``--frames`` takes any timestep of the avatar or of its subject: held-out timesteps are
+posed with their tracked FLAME parameters, as ``urhead render --orbit`` does.
 """
 
 from __future__ import annotations
@@ -22,19 +28,22 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from urhead._progress import tracked
 from urhead.model import Avatar
 from urhead.model.io import write_directory_atomically
 from urhead.ops import texture
 from urhead.sh import SH_C0
 from urhead.use.common import (
     OpenedAvatar,
-    avatar_camera,
     check_output_dir,
+    frame_at,
     open_avatar,
     open_subject,
     parse_timesteps,
+    selectable_timesteps,
 )
-from urhead.use.exr import write_exr
+from urhead.use.exr import image_channels, write_exr
+from urhead.use.glb import glb_bytes, seam_split
 from urhead.use.ply import write_gaussian_ply
 from urhead.use.sh_rotation import nearest_rotation, rotate_sh
 
@@ -42,58 +51,74 @@ from urhead.use.sh_rotation import nearest_rotation, rotate_sh
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
         "export",
-        help="export an avatar as 3DGS PLY files, textured OBJ meshes or UV maps",
+        help="export an avatar as 3DGS PLY files, textured meshes or UV maps",
         description="Export a fitted avatar: per-frame standard 3DGS PLY files in world "
-        "space (--ply), per-frame textured OBJ meshes (--mesh), the UV maps as float EXR "
-        "with PNG previews (--maps). Each output folder is written whole, then renamed "
+        "space (--ply), per-frame textured OBJ meshes (--mesh) and binary glTF (--glb), "
+        "the UV maps as compressed "
+        "float EXR with PNG previews (--maps). Each output folder is written whole, then renamed "
         "into place (an existing one is replaced).",
     )
     p.add_argument("avatar", type=Path, help="avatar directory (the fit's OUT/avatar)")
     p.add_argument("--ply", type=Path, default=None, metavar="DIR", help="write PLY files here")
     p.add_argument("--mesh", type=Path, default=None, metavar="DIR", help="write OBJ files here")
+    p.add_argument(
+        "--glb", type=Path, default=None, metavar="DIR", help="write textured GLB files here"
+    )
     p.add_argument("--maps", type=Path, default=None, metavar="DIR", help="write UV maps here")
     p.add_argument(
         "--frames",
         default=None,
-        help="timesteps to export, e.g. '0,5,10-20' (default: every frame of the avatar)",
+        help="timesteps to export, e.g. '0,5,10-20': frames of the avatar or, held out, of "
+        "its subject (default: every frame of the avatar)",
+    )
+    p.add_argument(
+        "--half", action="store_true", help="--maps: 16-bit half floats instead of 32-bit"
     )
     p.add_argument(
         "--subject",
         type=Path,
         default=None,
-        help="subject folder, only for avatars that record no camera (older fits)",
+        help="subject folder (default: the fit's); needed only for held-out --frames and "
+        "for avatars that record no camera",
     )
     p.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.ply is None and args.mesh is None and args.maps is None:
-        raise ValueError("nothing to export: pass --ply DIR, --mesh DIR and/or --maps DIR")
-    outputs = {"--ply": args.ply, "--mesh": args.mesh, "--maps": args.maps}
+    outputs = {"--ply": args.ply, "--mesh": args.mesh, "--glb": args.glb, "--maps": args.maps}
+    if all(path is None for path in outputs.values()):
+        raise ValueError("nothing to export: pass --ply, --mesh, --glb and/or --maps DIR")
     for option, path in outputs.items():
         if path is not None:
             check_output_dir(path, option)
     opened = open_avatar(args.avatar)
     avatar = opened.avatar
-    timesteps = parse_timesteps(args.frames, avatar.timesteps)
     if args.ply is not None and avatar.num_gaussians == 0:
         raise ValueError(f"--ply: the avatar {args.avatar} has no Gaussians (a mesh-only fit)")
+    subject = None
+    if any(path is not None for path in (args.ply, args.mesh, args.glb)):
+        subject = open_subject(opened, args.subject, required=False)
+    timesteps = parse_timesteps(
+        args.frames, selectable_timesteps(opened, subject), default=avatar.timesteps.tolist()
+    )
     with torch.no_grad():
-        if args.ply is not None or args.mesh is not None:
-            subject = open_subject(opened, args.subject, required=False)
-            camera = avatar_camera(opened, subject)
         if args.ply is not None:
             write_directory_atomically(
-                args.ply, lambda tmp: write_ply_frames(avatar, camera, timesteps, tmp)
+                args.ply, lambda tmp: write_ply_frames(opened, subject, timesteps, tmp)
             )
             print(f"wrote {len(timesteps)} PLY files to {args.ply}")
         if args.mesh is not None:
             write_directory_atomically(
-                args.mesh, lambda tmp: write_mesh_frames(avatar, camera, timesteps, tmp)
+                args.mesh, lambda tmp: write_mesh_frames(opened, subject, timesteps, tmp)
             )
             print(f"wrote {len(timesteps)} OBJ meshes to {args.mesh}")
+        if args.glb is not None:
+            write_directory_atomically(
+                args.glb, lambda tmp: write_glb_frames(opened, subject, timesteps, tmp)
+            )
+            print(f"wrote {len(timesteps)} GLB files to {args.glb}")
         if args.maps is not None:
-            write_directory_atomically(args.maps, lambda tmp: write_maps(opened, tmp))
+            write_directory_atomically(args.maps, lambda tmp: write_maps(opened, tmp, args.half))
             print(f"wrote the UV maps to {args.maps}")
     return 0
 
@@ -121,9 +146,10 @@ def _quat_z_axis(q: torch.Tensor) -> torch.Tensor:
     return torch.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)], -1)
 
 
-def write_ply_frames(avatar: Avatar, camera, timesteps: list[int], folder: Path) -> None:
-    for t in timesteps:
-        arrays = world_gaussians(avatar, avatar.frame(t), camera)
+def write_ply_frames(opened: OpenedAvatar, subject, timesteps: list[int], folder: Path) -> None:
+    for t in tracked(timesteps, len(timesteps), "export --ply"):
+        params, camera = frame_at(opened, subject, t)
+        arrays = world_gaussians(opened.avatar, params, camera)
         write_gaussian_ply(folder / f"{t:05d}.ply", **arrays)
 
 
@@ -133,9 +159,10 @@ def dc_texture(avatar: Avatar) -> np.ndarray:
     return (dc * SH_C0 + 0.5).clamp(0, 1).numpy()
 
 
-def write_mesh_frames(avatar: Avatar, camera, timesteps: list[int], folder: Path) -> None:
+def write_mesh_frames(opened: OpenedAvatar, subject, timesteps: list[int], folder: Path) -> None:
     import cv2
 
+    avatar = opened.avatar
     head = avatar.head
     rgb = (dc_texture(avatar) * 255 + 0.5).astype(np.uint8)
     if not cv2.imwrite(str(folder / "texture.png"), rgb[..., ::-1]):
@@ -146,35 +173,60 @@ def write_mesh_frames(avatar: Avatar, camera, timesteps: list[int], folder: Path
     vt = "".join(f"vt {u:.6f} {v:.6f}\n" for u, v in head.uv_coords)
     corners = np.stack([head.faces + 1, head.uv_faces + 1], -1).reshape(-1, 6)
     faces = "".join("f {}/{} {}/{} {}/{}\n".format(*row) for row in corners.tolist())
-    for t in timesteps:
-        verts = avatar.render(avatar.frame(t), camera, gaussians=False).mesh.verts
+    for t in tracked(timesteps, len(timesteps), "export --mesh"):
+        verts = posed_vertices(opened, subject, t)
         v = "".join(f"v {x:.6f} {y:.6f} {z:.6f}\n" for x, y, z in verts.tolist())
         text = f"# urhead avatar, timestep {t}\nmtllib material.mtl\n{v}{vt}usemtl avatar\n{faces}"
         (folder / f"{t:05d}.obj").write_text(text)
 
 
-def write_maps(opened: OpenedAvatar, folder: Path) -> None:
+def posed_vertices(opened: OpenedAvatar, subject, timestep: int) -> torch.Tensor:
+    """(V, 3) the displaced posed mesh of ``timestep`` in world space."""
+    params, camera = frame_at(opened, subject, timestep)
+    return opened.avatar.render(params, camera, gaussians=False).mesh.verts
+
+
+def write_glb_frames(opened: OpenedAvatar, subject, timesteps: list[int], folder: Path) -> None:
+    import cv2
+
+    head = opened.avatar.head
+    rgb = (dc_texture(opened.avatar) * 255 + 0.5).astype(np.uint8)
+    ok, png = cv2.imencode(".png", rgb[..., ::-1])
+    if not ok:
+        raise OSError(f"{folder}: cannot encode the texture as PNG")
+    vertex_index, uv_index, triangles = seam_split(head.faces, head.uv_faces)
+    texcoords = head.uv_coords[uv_index]
+    for t in tracked(timesteps, len(timesteps), "export --glb"):
+        verts = posed_vertices(opened, subject, t).numpy()
+        data = glb_bytes(verts[vertex_index], texcoords, triangles, png.tobytes())
+        (folder / f"{t:05d}.glb").write_bytes(data)
+
+
+def write_maps(opened: OpenedAvatar, folder: Path, half: bool = False) -> None:
     import cv2
 
     avatar = opened.avatar
     layout = avatar.layout
     maps = avatar.maps.detach().numpy()
     coeffs = maps[..., layout.color].reshape(*maps.shape[:2], layout.sh_coeffs, 3)
-    files = {f"color_sh{k:02d}.exr": coeffs[:, :, k] for k in range(layout.sh_coeffs)}
-    files["normal.exr"] = maps[..., layout.normal]
-    files["displacement.exr"] = maps[..., layout.displacement]
+    color = {}
+    for k in range(layout.sh_coeffs):
+        color.update(image_channels(coeffs[:, :, k], layer=f"sh{k:02d}"))
+    files = {"color.exr": color}
+    files["normal.exr"] = image_channels(maps[..., layout.normal])
+    files["displacement.exr"] = image_channels(maps[..., layout.displacement])
     previews = {
         "color.png": dc_texture(avatar),
         "normal.png": 0.5 + 0.5 * _unit(maps[..., layout.normal]),
         "displacement.png": _stretch(maps[..., layout.displacement]),
     }
     if layout.gaussians:
-        files["opacity.exr"] = maps[..., layout.opacity]
-        files["scale.exr"] = maps[..., layout.scale]
+        files["opacity.exr"] = image_channels(maps[..., layout.opacity])
+        files["scale.exr"] = image_channels(maps[..., layout.scale])
         previews["opacity.png"] = 1 / (1 + np.exp(-maps[..., layout.opacity]))
         previews["scale.png"] = _stretch(maps[..., layout.scale].mean(-1))
-    for name, image in files.items():
-        write_exr(folder / name, image)
+    for name, channels in files.items():
+        write_exr(folder / name, channels, half=half)
     for name, image in previews.items():
         pixels = (np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)
         if pixels.ndim == 3:
@@ -183,7 +235,9 @@ def write_maps(opened: OpenedAvatar, folder: Path) -> None:
             raise OSError(f"{folder}: cannot write {name}")
     description = {
         "orientation": "image row 0 is v = 1 (OBJ texture convention)",
-        "color_shKK.exr": "RGB SH coefficient k (3DGS basis, rest-frame view direction)",
+        "color.exr": "layer shKK (channels shKK.R, .G, .B): SH coefficient k (3DGS basis, "
+        "rest-frame view direction)",
+        "pixel_type": "half" if half else "float",
         "normal.exr": "rest-pose normal xyz (not normalised)",
         "displacement.exr": "displacement along the posed normal, metres (channel Y)",
         "opacity.exr": "opacity logit (channel Y)",

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from urhead._progress import tracked
 from urhead.errors import InvalidArgumentError, ShapeError
 from urhead.model.avatar import POSE_SIZE, FlameParams
 from urhead.use.common import (
@@ -51,7 +52,7 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("avatar", type=Path, help="avatar directory (the fit's OUT/avatar)")
     p.add_argument("--driver", type=Path, required=True, help="subject folder or .npz")
-    p.add_argument("--out", type=Path, required=True, help="output video (.mp4)")
+    p.add_argument("--out", type=Path, required=True, help="output video (.mp4, H.264)")
     p.add_argument(
         "--subject",
         type=Path,
@@ -74,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
     params = driven_params(avatar, driver)
 
     def images():
-        for p in params:
+        for p in tracked(params, len(params), "reenact"):
             yield to_uint8(avatar.render(p, camera, occlusion_aware=opened.occlusion_aware).image)
 
     with torch.no_grad():
