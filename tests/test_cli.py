@@ -164,6 +164,23 @@ def test_plain_progress_writes_a_few_whole_lines(monkeypatch):
     assert all("left" in line for line in lines[:-1])
 
 
+def test_plain_progress_resumes_and_shows_the_fit_postfix(monkeypatch):
+    clock = iter(range(0, 1000, 4))
+    monkeypatch.setattr(_progress.time, "monotonic", lambda: float(next(clock)))
+    stream = io.StringIO()
+    with _progress.progress(100, "fit", "it", stream=stream, initial=90) as bar:
+        bar.set_postfix(loss="0.0123", psnr="24.50")
+        bar.update(1)
+        bar.set_description("fit (held-out 25.00 dB)")
+        for _ in range(9):
+            bar.update(1)
+    lines = stream.getvalue().splitlines()
+    # Resumed at 90: the first line counts from there and its estimate uses one step.
+    assert lines[0].startswith("fit: 91/100 its (91 %)") and "~36 s left" in lines[0]
+    assert lines[0].endswith("(loss=0.0123, psnr=24.50)")
+    assert lines[-1].startswith("fit (held-out 25.00 dB): 100/100 its (100 %)")
+
+
 def test_progress_on_a_terminal_is_tqdm():
     class Terminal(io.StringIO):
         def isatty(self):

@@ -19,13 +19,23 @@ class PlainProgress:
     step, then at most one per ``interval`` seconds, and the last when the count reaches
     the total or the progress is closed."""
 
-    def __init__(self, total: int, desc: str, unit: str, stream: TextIO, interval: float):
+    def __init__(
+        self, total: int, desc: str, unit: str, stream: TextIO, interval: float, initial: int = 0
+    ):
         self.total, self.desc, self.unit = total, desc, unit
         self.stream, self.interval = stream, interval
-        self.count = 0
+        self.count = self._initial = initial
+        self.postfix = ""
         self._start = time.monotonic()
         self._printed_at: float | None = None
-        self._printed_count = 0
+        self._printed_count = initial
+
+    def set_description(self, desc: str) -> None:
+        self.desc = desc
+
+    def set_postfix(self, **values) -> None:
+        """Shown at the end of the next line, as tqdm shows its postfix."""
+        self.postfix = ", ".join(f"{k}={v}" for k, v in values.items())
 
     def update(self, n: int = 1) -> None:
         self.count += n
@@ -44,8 +54,11 @@ class PlainProgress:
         if self.total > 0:
             line += f" ({100 * self.count / self.total:.0f} %)"
         line += f", {elapsed:.0f} s"
-        if 0 < self.count < self.total:
-            line += f", ~{elapsed / self.count * (self.total - self.count):.0f} s left"
+        done = self.count - self._initial
+        if done > 0 and self.count < self.total:
+            line += f", ~{elapsed / done * (self.total - self.count):.0f} s left"
+        if self.postfix:
+            line += f" ({self.postfix})"
         print(line, file=self.stream, flush=True)
         self._printed_at, self._printed_count = now, self.count
 
@@ -58,6 +71,12 @@ class PlainProgress:
 
 class _Silent:
     def update(self, n: int = 1) -> None:
+        pass
+
+    def set_description(self, desc: str) -> None:
+        pass
+
+    def set_postfix(self, **values) -> None:
         pass
 
     def close(self) -> None:
@@ -78,6 +97,7 @@ def progress(
     enabled: bool = True,
     stream: TextIO | None = None,
     interval: float = PLAIN_INTERVAL_SECONDS,
+    initial: int = 0,
 ):
     """A context manager with ``update(n=1)``: tqdm when ``stream`` (default stderr) is a
     terminal, :class:`PlainProgress` otherwise, nothing when not ``enabled``."""
@@ -87,8 +107,8 @@ def progress(
     if stream.isatty():
         from tqdm import tqdm
 
-        return tqdm(total=total, desc=desc, unit=unit, file=stream)
-    return PlainProgress(total, desc, unit, stream, interval)
+        return tqdm(total=total, desc=desc, unit=unit, file=stream, initial=initial)
+    return PlainProgress(total, desc, unit, stream, interval, initial)
 
 
 def tracked(

@@ -428,7 +428,8 @@ def _atomic_text(path: Path, text: str) -> None:
 
 
 def _progress(total: int, initial: int, enabled: bool, desc: str = "fit"):
-    from tqdm import tqdm
+    """A tqdm bar on a terminal, a plain line every few seconds in a log file."""
+    from urhead._progress import progress
 
     unit = "it" if desc == "fit" else "frame"
-    return tqdm(total=total, initial=initial, desc=desc, unit=unit, disable=not enabled)
+    return progress(total, desc, unit, enabled=enabled, initial=initial)
