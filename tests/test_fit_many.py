@@ -85,7 +85,9 @@ def ray_cluster():
         temp = Path(tempfile.mkdtemp(prefix="urhead-ray-"))
         head = subprocess.Popen(
             [
-                str(Path(sys.executable).with_name("ray")),
+                # Ray's CLI through this interpreter: its `ray` script is beside whichever
+                # Python installed the package (a venv's or the system's), not always ours.
+                *(sys.executable, "-c", "from ray.scripts.scripts import main; main()"),
                 *("start", "--head", "--block", "--port=0", "--num-cpus=2"),
                 *("--include-dashboard=false", "--object-store-memory=200000000"),
                 *("--disable-usage-stats", f"--temp-dir={temp}"),
