@@ -30,6 +30,7 @@ from urhead._threads import configure_threads
 from urhead.config import FIT_PRESETS, FitConfig
 from urhead.data import load_subject
 from urhead.data.synthetic import SynthConfig, synthesize
+from urhead.eval import exact_flame_scores
 from urhead.eval.metrics import frame_params
 from urhead.head import procedural_head
 from urhead.train.trainer import Trainer
@@ -64,7 +65,7 @@ def main() -> None:
     metrics = dict(result.metrics, total_seconds=round(time.perf_counter() - start, 1))
     truth = subject_dir / "synthetic_ground_truth.npz"
     if truth.is_file():
-        oracle = true_flame_scores(result.avatar, subject, truth)
+        oracle = exact_flame_scores(result.avatar, held_out(subject), truth)
         metrics["psnr_true_flame"] = oracle.psnr
         metrics["psnr_true_flame_full"] = oracle.psnr_full
     tmp = args.out / "metrics.json.tmp"
@@ -74,25 +75,8 @@ def main() -> None:
     print(f"wrote {args.out}/avatar, metrics.json, psnr_vs_time.png, test_frames.png")
 
 
-def true_flame_scores(avatar, subject, truth_path: Path):
-    """Held-out scores when the avatar is driven by the synthetic subject's exact FLAME
-    parameters instead of the tracked ones: the oracle for tracking error (a diagnostic
-    only a synthetic subject allows)."""
-    from urhead.eval import evaluate_frames
-    from urhead.model import FlameParams
-
-    truth = np.load(truth_path)
-    frames = list(subject.test if len(subject.test) else subject.val)
-    e = avatar.num_expr
-    params = [
-        FlameParams(
-            torch.from_numpy(truth["expr"][f.timestep, :e].copy()),
-            torch.from_numpy(truth["pose"][f.timestep].copy()),
-            torch.from_numpy(truth["transl"][f.timestep].copy()),
-        )
-        for f in frames
-    ]
-    return evaluate_frames(avatar, frames, params=params, mesh_only=False)
+def held_out(subject):
+    return subject.test if len(subject.test) else subject.val
 
 
 def write_test_strip(avatar, subject, path: Path, refine_steps: int, count: int = 4) -> None:
@@ -102,7 +86,7 @@ def write_test_strip(avatar, subject, path: Path, refine_steps: int, count: int 
 
     from urhead.eval import RefineSettings, refine_params
 
-    frames = subject.test if len(subject.test) else subject.val
+    frames = held_out(subject)
     picks = np.linspace(0, len(frames) - 1, count).round().astype(int)
     settings = RefineSettings(steps=refine_steps)
     rows = []

@@ -167,3 +167,23 @@ def test_a_resized_camera_projects_to_scaled_pixel_coordinates():
     uv_small, _ = small.project(points)
     assert torch.allclose(uv_small, uv * torch.tensor([0.5, 0.25]), atol=1e-4)
     assert (small.width, small.height) == (64, 32)
+
+
+def test_exact_flame_scores_reads_the_ground_truth_file(head, tmp_path):
+    import numpy as np
+
+    from urhead.eval import exact_flame_scores
+
+    avatar = textured_avatar(head, resolution=32, count=100)
+    cam = camera(48)
+    truth = _truth(avatar)
+    frame = _frame(avatar, truth, 2, cam)
+    # synthetic_ground_truth.npz holds every timestep: the frame's row is index 2
+    rows = lambda x: np.stack([np.zeros_like(x), np.zeros_like(x), x])  # noqa: E731
+    path = tmp_path / "synthetic_ground_truth.npz"
+    np.savez(path, expr=rows(truth.expr.numpy()), pose=rows(truth.pose.numpy()),
+             transl=rows(truth.transl.numpy()))  # fmt: skip
+    exact = exact_flame_scores(avatar, [frame], path)
+    direct = evaluate_frames(avatar, [frame], params=[truth], mesh_only=False)
+    assert exact.psnr == direct.psnr and exact.psnr_full == direct.psnr_full
+    assert exact.psnr_full > 40  # the frame was rendered from exactly these parameters

@@ -84,10 +84,7 @@ def _key(subject: SynthConfig, config: FitConfig) -> str:
 
 def fit_once(subject_name: str, remedy: str) -> dict:
     """The scores of one (subject, remedy) fit, from the cache when it was made before."""
-    import numpy as np
-
-    from urhead.eval import evaluate_frames
-    from urhead.model import FlameParams
+    from urhead.eval import exact_flame_scores
 
     synth, config = subject_config(subject_name), fit_config(remedy)
     cached = CACHE / f"{_key(synth, config)}.json"
@@ -97,18 +94,9 @@ def fit_once(subject_name: str, remedy: str) -> dict:
     subject = load_subject(folder)
     out = CACHE / f"{_key(synth, config)}.fit"
     result = Trainer(subject, procedural_head(0), config, out, progress=False).run()
-    truth = np.load(folder / "synthetic_ground_truth.npz")
-    frames = list(subject.test)
-    e = result.avatar.num_expr
-    exact = [
-        FlameParams(
-            torch.from_numpy(truth["expr"][f.timestep, :e].copy()),
-            torch.from_numpy(truth["pose"][f.timestep].copy()),
-            torch.from_numpy(truth["transl"][f.timestep].copy()),
-        )
-        for f in frames
-    ]
-    oracle = evaluate_frames(result.avatar, frames, params=exact, mesh_only=False)
+    oracle = exact_flame_scores(
+        result.avatar, list(subject.test), folder / "synthetic_ground_truth.npz"
+    )
     m = result.metrics
     scores = {
         key: m[key]

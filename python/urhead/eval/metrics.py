@@ -96,7 +96,7 @@ def evaluate_frames(
     )
     if refine is None or refine.steps == 0:
         return scores
-    refined = refine_params_of(avatar, frames, refine, occlusion_aware, progress)
+    refined = refine_params_of(avatar, frames, refine, occlusion_aware, progress, params)
     after = _score(
         avatar, frames, refined, occlusion_aware=occlusion_aware, mesh_only=False, lpips=None
     )
@@ -111,12 +111,18 @@ def evaluate_frames(
 
 
 def refine_params_of(
-    avatar: Avatar, frames: Sequence, settings: RefineSettings, occlusion_aware=True, progress=None
+    avatar: Avatar,
+    frames: Sequence,
+    settings: RefineSettings,
+    occlusion_aware=True,
+    progress=None,
+    starts: Sequence[FlameParams] | None = None,
 ) -> list[FlameParams]:
-    """Each frame's parameters after test-time refinement; training frames (whose rows the
-    fit already refined) keep their trained rows."""
+    """Each frame's parameters after test-time refinement from ``starts`` (default:
+    :func:`frame_params`); training frames (whose rows the fit already refined) keep
+    theirs."""
     held = [i for i, f in enumerate(frames) if not bool((avatar.timesteps == f.timestep).any())]
-    params = [frame_params(avatar, f) for f in frames]
+    params = list(starts) if starts is not None else [frame_params(avatar, f) for f in frames]
     held_frames = [frames[i] for i in held]
     refined = refine_sequence(
         avatar,
@@ -129,3 +135,23 @@ def refine_params_of(
     for i, p in zip(held, refined, strict=True):
         params[i] = p
     return params
+
+
+def exact_flame_scores(avatar: Avatar, frames: Sequence, truth_path) -> FrameScores:
+    """Scores of ``frames`` driven by a synthetic subject's exact FLAME parameters
+    (``synthetic_ground_truth.npz``: expr (T, E), pose (T, 15), transl (T, 3)) instead of
+    the tracked ones: the oracle for tracking error, which only a synthetic subject has."""
+    import numpy as np
+
+    frames = list(frames)
+    e = avatar.num_expr
+    with np.load(truth_path) as truth:
+        exact = [
+            FlameParams(
+                torch.from_numpy(truth["expr"][f.timestep, :e].copy()),
+                torch.from_numpy(truth["pose"][f.timestep].copy()),
+                torch.from_numpy(truth["transl"][f.timestep].copy()),
+            )
+            for f in frames
+        ]
+    return evaluate_frames(avatar, frames, params=exact, mesh_only=False)
