@@ -22,7 +22,7 @@ def _channel_lr(lr, channels: int) -> torch.Tensor:
     return t.contiguous()
 
 
-def _rows_and_values(param: torch.Tensor, grad: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def rows_and_values(param: torch.Tensor, grad: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Touched rows (K,) int64, strictly increasing, and their gradients (K, C)."""
     channels = param.shape[-1]
     if grad.is_sparse:
@@ -111,7 +111,7 @@ class SparseAdam(torch.optim.Optimizer):
                     state["exp_avg_sq"] = torch.zeros_like(p)
                     state["steps"] = torch.zeros(p.numel() // channels, dtype=torch.int32)
                     state["rejected_rows"] = 0
-                rows, values = _rows_and_values(p, p.grad)
+                rows, values = rows_and_values(p, p.grad)
                 if rows.numel() == 0:
                     continue
                 rejected = _core.sparse_adam_step(

@@ -118,6 +118,18 @@ class MapLayout:
     def channels(self) -> int:
         return sum(self._sizes())
 
+    def named_maps(self) -> list[tuple[str, slice]]:
+        """``(name, channels)`` of every map present, in storage order (for reports)."""
+        names = ["colour C", "normal N", "displacement D"]
+        names += ["opacity O", "scale S"] if self.gaussians else []
+        names += ["offset E"] if self.offsets else []
+        names += ["shading A"] if self.shading else []
+        out, start = [], 0
+        for name, size in zip(names, self._sizes(), strict=True):
+            out.append((name, slice(start, start + size)))
+            start += size
+        return out
+
     def split(self, samples: torch.Tensor) -> MapSamples:
         """(..., channels) map samples → their maps, by one ``split`` (its backward is
         one concatenation, where per-map slicing would allocate a zero buffer per map)."""

@@ -35,6 +35,7 @@ from urhead.train.checkpoint import (
     remove_checkpoints,
     save_checkpoint,
 )
+from urhead.train.guard import StepGuard
 from urhead.train.loss import training_loss, uv_error_samples
 from urhead.train.plots import plot_psnr_vs_time
 
@@ -51,6 +52,7 @@ class FitState:
     maps_opt: SparseAdam
     frames_opt: SparseAdam
     map_lr: torch.Tensor
+    guard: StepGuard
     accumulator: ErrorAccumulator
     surface: UvSurface
     max_radius: torch.Tensor
@@ -217,6 +219,7 @@ class Trainer:
             maps_opt=maps_opt,
             frames_opt=frames_opt,
             map_lr=map_lr,
+            guard=StepGuard(avatar, maps_opt, frames_opt, map_lr, start=saved["iteration"]),
             accumulator=ErrorAccumulator(min(c.error_grid, c.uv_resolution)),
             surface=UvSurface(self.head.uv_coords, self.head.uv_faces),
             max_radius=torch.zeros(avatar.num_gaussians, dtype=torch.int32),
@@ -229,6 +232,8 @@ class Trainer:
             frames_opt.load_state_dict(saved["frames_opt"])
             state.accumulator.load_state(saved["accumulator"])
             state.max_radius = saved["max_radius"]
+        if "guard" in saved:
+            state.guard.load_state(saved["guard"])
         return state
 
     def step(self, state: FitState) -> tuple[torch.Tensor, Render, object]:
@@ -267,16 +272,19 @@ class Trainer:
         )
         loss.total.backward()
         avatar.maps.grad = gather.gradient()
-        state.maps_opt.step()
-        state.frames_opt.step()
+        grads = avatar.maps.grad, avatar.frame_params.grad
+        if state.guard.admit(it, row, loss.total.detach(), *grads):
+            state.maps_opt.step()
+            state.frames_opt.step()
+            if self.adaptive:
+                state.accumulator.add(*uv_error_samples(render, frame))
+            if render.gaussians is not None:
+                radius = render.gaussians.radii.amax(-1)
+                state.max_radius = torch.maximum(state.max_radius, radius)
         avatar.maps.grad = None
         avatar.frame_params.grad = None
-        if self.adaptive:
-            state.accumulator.add(*uv_error_samples(render, frame))
-        if render.gaussians is not None:
-            radius = render.gaussians.radii.amax(-1)
-            state.max_radius = torch.maximum(state.max_radius, radius)
         state.iteration = it = it + 1
+        state.guard.end_iteration(it)
         if self.gaussians and it % c.sample_every == 0 and it < c.iterations:
             self._resample(state, frame)
         return loss.total.detach(), render, frame
@@ -297,19 +305,22 @@ class Trainer:
             it = state.iteration
             with torch.no_grad():
                 value = float(psnr(render.image.clamp(0, 1), frame.image, frame.mask))
-            train_psnr = value if train_psnr is None else 0.9 * train_psnr + 0.1 * value
+            if math.isfinite(value):  # not for a frame with an empty mask
+                train_psnr = value if train_psnr is None else 0.9 * train_psnr + 0.1 * value
             if state.seconds - last_eval >= c.eval_every_seconds or it == c.iterations:
                 held = evaluate_frames(state.avatar, eval_frames, mesh_only=False).psnr
                 state.history.append((round(state.seconds, 3), it, held))
                 last_eval = state.seconds
                 log.info("%.1f s, iteration %d: held-out PSNR %.2f dB", state.seconds, it, held)
                 bar.set_description(f"fit (held-out {held:.2f} dB)")
-            bar.set_postfix(loss=f"{float(loss):.4f}", psnr=f"{train_psnr:.2f}")
+            bar.set_postfix(loss=f"{float(loss):.4f}", psnr=f"{train_psnr or math.nan:.2f}")
             bar.update(1)
             if it % c.checkpoint_every == 0 and it < c.iterations:
+                state.guard.settle(it)  # only a verified state is written
                 save_checkpoint(self.out, state.avatar, self._checkpoint_state(state))
         bar.close()
-        return self._finish(state.avatar, state.seconds, state.history)
+        state.guard.settle(state.iteration)
+        return self._finish(state.avatar, state.seconds, state.history, state.guard.events)
 
     def _checkpoint_state(self, state: FitState) -> dict:
         return {
@@ -321,6 +332,7 @@ class Trainer:
             "frames_opt": state.frames_opt.state_dict(),
             "accumulator": state.accumulator.state(),
             "max_radius": state.max_radius,
+            "guard": state.guard.state(),
         }
 
     def _resample(self, state: FitState, frame) -> None:
@@ -351,7 +363,7 @@ class Trainer:
             avatar.num_gaussians,
         )
 
-    def _finish(self, avatar: Avatar, seconds: float, history: list) -> FitResult:
+    def _finish(self, avatar: Avatar, seconds: float, history: list, events: list) -> FitResult:
         c = self.config
         avatar.maps.requires_grad_(False)
         avatar.frame_params.requires_grad_(False)
@@ -382,6 +394,7 @@ class Trainer:
             "iterations": c.iterations,
             "held_out_frames": len(held_out),
             "refine_steps": c.refine_steps,
+            "rejected_steps": [asdict(e) for e in events],
             "metric_region": "psnr, ssim: inside the foreground mask; *_full: the whole "
             "image; on the subject's background",
             "flame_parameters": "psnr*: held-out frames with their tracked FLAME parameters; "

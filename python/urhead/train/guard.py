@@ -1,0 +1,342 @@
+"""The step guard: keeps non-finite and diverging steps out of the fit (NUMERICS.md case 31).
+
+Every iteration's step is inspected before the optimisers apply it. It is bad when
+
+- non-finite: the loss, or a gradient entry of some parameter group, is NaN or infinite;
+- exploding: the loss exceeds ``LOSS_JUMP`` times the loss the same frame had at its
+  previous visit (times the median of the recent accepted losses for a frame not seen
+  yet), or one group's largest gradient exceeds ``GRADIENT_JUMP`` times the median of that
+  group's recent largest gradients.
+
+A bad step is not applied. The parameters and Adam moments go back to the last good
+state, the learning rate of the group it came from is halved (the group whose gradient
+stands out most against its own recent median, for a loss jump), and a warning names the
+iteration, what went wrong and the group. The good states are the starts of windows of
+``WINDOW`` iterations: a window ends when the next step's loss is judged good and every row
+the window changed is finite; :meth:`StepGuard.settle` ends the current one (on finiteness
+alone) before a checkpoint or the avatar is written, so neither ever holds a non-finite
+value.
+
+Memory and time: the maps' snapshot is copy-on-write — a texel row and its moments are
+copied the first time a step of the window is about to change them — so it holds the
+texels one window touched, never a second atlas; the frame table is small and copied
+whole. Per iteration the guard reads each gradient once (its largest magnitude per
+channel) and copies the rows not yet saved in the window.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import deque
+from dataclasses import asdict, dataclass
+
+import torch
+
+from urhead.errors import NonFiniteError
+from urhead.model.avatar import POSE_SIZE, Avatar
+from urhead.optim import SparseAdam, rows_and_values
+
+log = logging.getLogger("urhead.fit")
+
+WINDOW = 20
+"""Iterations between good states: a rollback loses at most this many."""
+HISTORY = 25
+"""Accepted iterations the medians are taken over."""
+WARMUP = 5
+"""Accepted iterations before a loss jump is judged (a group's gradient jump needs
+``HISTORY // 2`` iterations in which the group had a gradient)."""
+LOSS_JUMP = 3.0
+"""A frame's loss this many times its previous one (or the recent median) is divergence.
+Natural spread (two synthetic subjects, 300–400 iterations at 64²): a frame's loss at most
+1.21× its previous visit; at every rate ×100 the first divergence shows as 7.4×."""
+STRIKES = 2
+"""Loss jumps of one frame after which its loss is taken as its reference."""
+GRADIENT_JUMP = 1e4
+"""A group's largest gradient this many times its recent median is an explosion (natural
+spread, same runs: at most 45×)."""
+LR_CUT = 0.5
+"""Factor on the learning rate of the group a bad step came from."""
+
+
+@dataclass(frozen=True)
+class GuardEvent:
+    """One rejected step: where, what, which group, and the iteration restored."""
+
+    iteration: int
+    kind: str  # "non-finite loss", "non-finite gradient", "loss jump", "gradient jump", …
+    group: str
+    detail: str
+    restored_to: int
+
+
+class _Group:
+    """A parameter group the guard reports on and cuts the rate of: some channels of one
+    table (``"maps"`` or ``"frames"``)."""
+
+    def __init__(self, name: str, table: str, channels: slice):
+        self.name, self.table, self.channels = name, table, channels
+
+
+class StepGuard:
+    """Inspects, snapshots and rolls back the steps of one fit's two optimisers.
+
+    ``map_lr`` (C,) is the trainer's base per-channel map rate (cut in place); the frame
+    rates are the frame optimiser's own per-channel ``lr`` tensor. ``start`` is the
+    iteration the fit starts (or resumes) at."""
+
+    def __init__(
+        self,
+        avatar: Avatar,
+        maps_opt: SparseAdam,
+        frames_opt: SparseAdam,
+        map_lr: torch.Tensor,
+        *,
+        start: int = 0,
+    ):
+        self.maps, self.frames = avatar.maps, avatar.frame_params
+        self.maps_opt, self.frames_opt = maps_opt, frames_opt
+        self.map_lr = map_lr
+        self.frame_lr = frames_opt.param_groups[0]["lr"]
+        e = avatar.num_expr
+        self.groups = [_Group(name, "maps", s) for name, s in avatar.layout.named_maps()]
+        self.groups += [
+            _Group("FLAME expression", "frames", slice(0, e)),
+            _Group("FLAME pose", "frames", slice(e, e + POSE_SIZE)),
+            _Group("FLAME translation", "frames", slice(e + POSE_SIZE, e + POSE_SIZE + 3)),
+        ]
+        for table in (self.maps, self.frames):
+            if not torch.isfinite(table).all():
+                raise NonFiniteError("the fit's starting state has NaN or infinite values")
+        self.losses: deque[float] = deque(maxlen=HISTORY)
+        self.peaks: deque[torch.Tensor] = deque(maxlen=HISTORY)  # (groups,) each
+        self.frame_loss: dict[int, float] = {}
+        self.strikes: dict[int, int] = {}  # loss jumps of a frame since it was last accepted
+        self.events: list[GuardEvent] = []
+        self._begin_window(start)
+
+    # --- the per-iteration calls ----------------------------------------------------
+
+    def admit(self, iteration: int, row: int, loss: torch.Tensor, maps_grad, frames_grad) -> bool:
+        """Whether the step of ``iteration`` (training frame ``row``, its ``loss`` and the
+        two tables' gradients) may be applied. If so, the rows it will change are saved
+        first; if not, the fit is rolled back and the group's rate cut."""
+        value = float(loss)
+        map_rows, map_values = self._rows_and_values(self.maps, maps_grad)
+        _, frame_values = self._rows_and_values(self.frames, frames_grad)
+        channel_peaks = {"maps": _peaks(map_values), "frames": _peaks(frame_values)}
+        peaks = torch.stack([channel_peaks[g.table][g.channels].amax() for g in self.groups])
+        problem = self._judge(value, row, peaks)
+        if problem is not None:
+            kind, group, detail = problem
+            if kind == "loss jump":
+                self._strike(row, value)
+            self._roll_back(iteration, kind, group, detail)
+            return False
+        self.losses.append(value)
+        self.peaks.append(peaks)
+        self.frame_loss[row] = value
+        self.strikes.pop(row, None)
+        if self._window_due:  # this loss vouches for the state the last steps made
+            self.settle(iteration)
+        self._save_rows(map_rows)
+        return True
+
+    def end_iteration(self, iteration: int) -> None:
+        """Called after every iteration: every ``WINDOW`` iterations the window is due to
+        end, at the next step whose loss shows the state is good."""
+        self._window_due = iteration - self.window_start >= WINDOW
+
+    def settle(self, iteration: int) -> None:
+        """Ends the current window at ``iteration``: the state becomes the last good one if
+        every row the window changed is finite, else the window is rolled back. Call before
+        writing the state anywhere."""
+        rows = torch.cat(self._rows) if self._rows else torch.zeros(0, dtype=torch.int64)
+        for name, table in self._tables(rows):
+            bad = ~torch.isfinite(table).all(0)
+            if bad.any():
+                group = self._group_of_channel(name, int(bad.nonzero()[0, 0]))
+                self._roll_back(iteration, "non-finite state", group, f"in {name}")
+                return
+        self._begin_window(iteration)
+
+    # --- checkpoints ------------------------------------------------------------------
+
+    def state(self) -> dict:
+        """What a checkpoint keeps so a resumed fit judges and steps as this one would."""
+        return {
+            "map_lr": self.map_lr.clone(),
+            "frame_lr": self.frame_lr.clone(),
+            "losses": list(self.losses),
+            "peaks": torch.stack(list(self.peaks)) if self.peaks else torch.zeros(0),
+            "frame_loss": [[row, loss] for row, loss in self.frame_loss.items()],
+            "strikes": [[row, n] for row, n in self.strikes.items()],
+            "events": [asdict(e) for e in self.events],
+        }
+
+    def load_state(self, state: dict) -> None:
+        self.map_lr.copy_(state["map_lr"])
+        self.frame_lr.copy_(state["frame_lr"])
+        self.losses.extend(state["losses"])
+        self.peaks.extend(state["peaks"].unbind(0) if state["peaks"].numel() else [])
+        self.frame_loss = {int(row): float(loss) for row, loss in state["frame_loss"]}
+        self.strikes = {int(row): int(n) for row, n in state["strikes"]}
+        self.events = [GuardEvent(**e) for e in state["events"]]
+
+    # --- inside -----------------------------------------------------------------------
+
+    def _judge(self, loss: float, row: int, peaks: torch.Tensor):
+        """``(kind, group, detail)`` of a bad step, None for a good one."""
+        if not torch.isfinite(peaks).all():
+            group = self.groups[int((~torch.isfinite(peaks)).nonzero()[0, 0])]
+            return "non-finite gradient", group, "NaN or infinite entries"
+        if not math.isfinite(loss):
+            return "non-finite loss", self._most_unusual(peaks), f"loss {loss}"
+        if len(self.losses) < WARMUP:
+            return None
+        history = torch.stack(list(self.peaks))
+        ratio = _ratio_to_median(peaks, history)
+        worst = int(ratio.argmax())
+        if ratio[worst] > GRADIENT_JUMP:
+            detail = f"largest gradient {float(peaks[worst]):.3g}, {float(ratio[worst]):.3g}×"
+            return "gradient jump", self.groups[worst], detail + " its recent median"
+        reference = self.frame_loss.get(row)
+        if reference is None:
+            reference = float(torch.tensor(list(self.losses)).median())
+        if loss > LOSS_JUMP * reference:
+            return "loss jump", self._most_unusual(peaks), f"loss {loss:.4g} vs {reference:.4g}"
+        return None
+
+    def _strike(self, row: int, loss: float) -> None:
+        """Counts a loss jump of frame ``row``. A frame new to the guard, or one that jumped
+        ``STRIKES`` times from restored states, is harder than the rest rather than a sign
+        of divergence: its loss becomes its reference, so it cannot be rejected forever."""
+        self.strikes[row] = self.strikes.get(row, 0) + 1
+        if row not in self.frame_loss or self.strikes[row] >= STRIKES:
+            self.frame_loss[row] = loss
+            del self.strikes[row]
+
+    def _most_unusual(self, peaks: torch.Tensor) -> _Group:
+        """The group whose largest gradient stands out most against its recent median."""
+        if not self.peaks:
+            return self.groups[int(peaks.nan_to_num(0, 0, 0).argmax())]
+        ratio = _ratio_to_median(peaks.nan_to_num(0, 0, 0), torch.stack(list(self.peaks)))
+        return self.groups[int(ratio.argmax())]
+
+    def _roll_back(self, iteration: int, kind: str, group: _Group, detail: str) -> None:
+        self._restore()
+        rates = self.map_lr if group.table == "maps" else self.frame_lr
+        rates[group.channels] *= LR_CUT
+        event = GuardEvent(iteration, kind, group.name, detail, self.window_start)
+        self.events.append(event)
+        log.warning(
+            "iteration %d: %s in %s (%s); rolled back to iteration %d, %s learning rate × %g",
+            iteration,
+            kind,
+            group.name,
+            detail,
+            self.window_start,
+            group.name,
+            LR_CUT,
+        )
+        self._begin_window(self.window_start)
+
+    def _begin_window(self, iteration: int) -> None:
+        self.window_start = iteration
+        self._window_due = False
+        self._rows: list[torch.Tensor] = []  # per saved chunk: (K,) rows of the maps
+        self._saved: list[tuple] = []  # per chunk: values, exp_avg, exp_avg_sq, steps
+        self._is_saved = torch.zeros(self.maps.numel() // self.maps.shape[-1], dtype=torch.bool)
+        state = self.frames_opt.state.get(self.frames, {})
+        self._frames_saved = (
+            self.frames.detach().clone(),
+            {k: v.clone() if torch.is_tensor(v) else v for k, v in state.items()},
+        )
+
+    def _save_rows(self, rows: torch.Tensor) -> None:
+        new = rows[~self._is_saved[rows]]
+        if new.numel() == 0:
+            return
+        self._is_saved[new] = True
+        flat = self._flat(self.maps)
+        state = self.maps_opt.state.get(self.maps, {})
+        if state:
+            moments = (
+                self._flat(state["exp_avg"])[new],
+                self._flat(state["exp_avg_sq"])[new],
+                state["steps"][new],
+            )
+        else:  # before the first step the moments are zero (SparseAdam creates them lazily)
+            zeros = torch.zeros(len(new), flat.shape[1])
+            moments = (zeros, zeros, torch.zeros(len(new), dtype=torch.int32))
+        self._rows.append(new)
+        self._saved.append((flat[new], *moments))
+
+    def _restore(self) -> None:
+        with torch.no_grad():
+            flat = self._flat(self.maps)
+            state = self.maps_opt.state.get(self.maps, {})
+            for rows, (values, exp_avg, exp_avg_sq, steps) in zip(
+                self._rows, self._saved, strict=True
+            ):
+                flat[rows] = values
+                if state:
+                    self._flat(state["exp_avg"])[rows] = exp_avg
+                    self._flat(state["exp_avg_sq"])[rows] = exp_avg_sq
+                    state["steps"][rows] = steps
+            frames, moments = self._frames_saved
+            self.frames.copy_(frames)
+            live = self.frames_opt.state[self.frames]
+            live.clear()
+            live.update({k: v.clone() if torch.is_tensor(v) else v for k, v in moments.items()})
+
+    def _tables(self, rows: torch.Tensor):
+        """``(name, (K, C) table)`` of what the window may have changed: the maps' saved
+        rows, their moments, and the frame table with its moments."""
+        flat = self._flat(self.maps)
+        yield "maps", flat[rows].detach()
+        state = self.maps_opt.state.get(self.maps, {})
+        for key in ("exp_avg", "exp_avg_sq"):
+            if key in state:
+                yield f"maps' Adam {key}", self._flat(state[key])[rows]
+        yield "frames", self.frames.detach()
+        state = self.frames_opt.state.get(self.frames, {})
+        for key in ("exp_avg", "exp_avg_sq"):
+            if key in state:
+                yield f"frames' Adam {key}", state[key]
+
+    def _group_of_channel(self, table_name: str, channel: int) -> _Group:
+        table = "maps" if table_name.startswith("maps") else "frames"
+        return next(
+            g
+            for g in self.groups
+            if g.table == table and g.channels.start <= channel < g.channels.stop
+        )
+
+    @staticmethod
+    def _flat(table: torch.Tensor) -> torch.Tensor:
+        return table.detach().view(-1, table.shape[-1])
+
+    @staticmethod
+    def _rows_and_values(table: torch.Tensor, grad) -> tuple[torch.Tensor, torch.Tensor]:
+        if grad is None:
+            return torch.zeros(0, dtype=torch.int64), torch.zeros(0, table.shape[-1])
+        return rows_and_values(table, grad)
+
+
+def _peaks(values: torch.Tensor) -> torch.Tensor:
+    """(C,) the largest gradient magnitude per channel of ``values`` (K, C): NaN where
+    one is NaN, 0 for no rows."""
+    if values.shape[0] == 0:
+        return torch.zeros(values.shape[1])
+    return values.abs().amax(0)
+
+
+def _ratio_to_median(peaks: torch.Tensor, history: torch.Tensor) -> torch.Tensor:
+    """(groups,) each group's peak over the median of its non-zero recent peaks (0 for a
+    group with too few of them: a group seen rarely is not judged)."""
+    seen = history > 0
+    median = torch.where(seen, history, torch.nan).nanmedian(0).values
+    enough = seen.sum(0) >= HISTORY // 2
+    ratio = peaks / median
+    return torch.where(enough, ratio, torch.zeros_like(ratio))
