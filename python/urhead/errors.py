@@ -14,6 +14,10 @@ class DTypeError(TypeError):
     """A tensor has the wrong dtype or device."""
 
 
+class UnitsError(ValueError):
+    """Lengths are not in the unit the computation is stated in (metres)."""
+
+
 __all__ = [
     "DTypeError",
     "IndexRangeError",
@@ -21,4 +25,5 @@ __all__ = [
     "NonFiniteError",
     "ShapeError",
     "SizeLimitError",
+    "UnitsError",
 ]

@@ -185,3 +185,54 @@ def tracking_noise(rng, perf: Performance, shape: np.ndarray, strength: float):
         pose.astype(np.float32),
         transl.astype(np.float32),
     )
+
+
+EXTREME_POSES = np.radians(
+    [
+        # global pitch, global yaw, jaw opening, eye pitch, eye yaw (degrees)
+        [0, 90, 0, 0, 0],
+        [0, -90, 0, 0, 0],
+        [45, 0, 0, 0, 0],
+        [-45, 0, 0, 0, 0],
+        [0, 0, 30, 0, 0],
+        [0, 0, 0, 25, 35],
+        [0, 0, 0, -25, -35],
+        [45, 90, 30, 25, -35],
+        [-45, -90, 30, -25, 35],
+    ]
+)
+"""The poses of the ``extreme`` motion, cycled through: the head turned fully sideways or
+tilted 45° up and down, the jaw wide open (30°), the eyes at their limits, and all at
+once."""
+
+OFF_SCREEN_SHIFTS = (0.0, 0.17, 0.6, -0.17)
+"""Sideways head translations (metres) of the ``off_screen`` motion, cycled through: at
+0.75 m with a 26° field of view the image edge is 0.17 m from the axis, so the head is
+in view, half out, wholly out (an empty mask) and half out on the other side."""
+
+
+def extreme_motion(perf: Performance) -> Performance:
+    """``perf`` with its head and eye poses replaced, frame by frame, by
+    :data:`EXTREME_POSES` (the neck straight; expressions and translation kept)."""
+    n = len(perf.pose)
+    picked = EXTREME_POSES[np.arange(n) % len(EXTREME_POSES)]
+    pose = np.zeros((n, 15))
+    pose[:, 0], pose[:, 1] = picked[:, 0], picked[:, 1]
+    pose[:, 6] = picked[:, 2]
+    for eye in (9, 12):
+        pose[:, eye], pose[:, eye + 1] = picked[:, 3], picked[:, 4]
+    activation = dict(perf.activation, jaw=np.clip(pose[:, 6] / 0.25, 0, 1))
+    return Performance(perf.expr, pose.astype(np.float32), perf.transl, activation)
+
+
+def off_screen_motion(perf: Performance) -> Performance:
+    """``perf`` moved sideways frame by frame by :data:`OFF_SCREEN_SHIFTS`."""
+    n = len(perf.transl)
+    transl = perf.transl.copy()
+    transl[:, 0] += np.asarray(OFF_SCREEN_SHIFTS)[np.arange(n) % len(OFF_SCREEN_SHIFTS)]
+    return Performance(perf.expr, perf.pose, transl.astype(np.float32), perf.activation)
+
+
+MOTIONS = {"talking": None, "extreme": extreme_motion, "off_screen": off_screen_motion}
+"""The ``motion`` settings of a synthetic subject: the talking performance as it is, or
+remade by one of these (NUMERICS.md cases 29 and 30)."""

@@ -31,7 +31,7 @@ import torch
 from urhead.camera import Camera
 from urhead.data.background import parse_background
 from urhead.data.subdivision import vertex_normals
-from urhead.data.synth_motion import FPS, performance, tracking_noise
+from urhead.data.synth_motion import FPS, MOTIONS, performance, tracking_noise
 from urhead.data.synth_scene import HAIR_MODES, MATERIALS, Strands, SubjectLook, build_look
 from urhead.data.writer import SubjectWriter
 from urhead.raytrace import Light, TriangleBvh, raytrace
@@ -134,6 +134,12 @@ class SynthConfig:
     tracking_noise: float | None = None
     background: tuple[float, float, float] = BACKGROUND
     """RGB in [0, 1] the frames are composited on."""
+    motion: str = "talking"
+    """The performance: ``talking``, or remade as ``extreme`` poses or ``off_screen`` (see
+    :data:`urhead.data.synth_motion.MOTIONS`)."""
+    length_unit: float = 1.0
+    """Metres per length unit of the written files (head model, cameras, FLAME
+    translations): 1e-3 writes millimetres, 1e3 kilometres. The images do not change."""
 
     def __post_init__(self):
         if self.difficulty not in DIFFICULTIES:
@@ -150,6 +156,10 @@ class SynthConfig:
             raise ValueError(f"hair must be one of {list(HAIR_MODES)}, got {self.hair!r}")
         if self.tracking_noise is not None and not 0 <= self.tracking_noise < float("inf"):
             raise ValueError(f"tracking_noise must be >= 0, got {self.tracking_noise}")
+        if self.motion not in MOTIONS:
+            raise ValueError(f"motion must be one of {list(MOTIONS)}, got {self.motion!r}")
+        if not 0 < self.length_unit < float("inf"):
+            raise ValueError(f"length_unit must be > 0, got {self.length_unit}")
 
     def resolved(self) -> SynthConfig:
         """This config with the conditions left None taken from its difficulty."""
@@ -159,11 +169,14 @@ class SynthConfig:
         return replace(self, **{**values, "tracking_noise": float(values["tracking_noise"])})
 
     def cache_key(self) -> str:
-        """The same for configs that make the same subject (conditions resolved); white
-        subjects keep the keys they had before backgrounds were an option."""
+        """The same for configs that make the same subject (conditions resolved); white,
+        talking, metric subjects keep the keys they had before those were options."""
         settings = asdict(self.resolved())
-        if self.background == BACKGROUND:
-            del settings["background"]
+        for name, default in (("background", BACKGROUND), ("motion", "talking")):
+            if settings[name] == default:
+                del settings[name]
+        if self.length_unit == 1.0:
+            del settings["length_unit"]
         blob = json.dumps({"generator_version": GENERATOR_VERSION, **settings}, sort_keys=True)
         return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
@@ -235,6 +248,8 @@ def synthesize(
         max_yaw_deg=preset["max_yaw_deg"],
         expression_scale=preset["expression_scale"],
     )
+    if MOTIONS[config.motion] is not None:
+        perf = MOTIONS[config.motion](perf)
     tracked = tracking_noise(rng, perf, look.shape, config.tracking_noise)
     shape_n, expr_n, pose_n, transl_n = tracked
     camera = subject_camera(config.resolution)
@@ -253,9 +268,11 @@ def synthesize(
     def write(t: int, rgb: np.ndarray, mask: np.ndarray, normals: np.ndarray) -> None:
         writer.add_frame(t, np.clip(rgb, 0, 1), mask, flame(t), normals=normals)
 
+    to_unit = 1.0 / config.length_unit
+
     def flame(t: int) -> dict:
         return {
-            "translation": transl_n[t][None],
+            "translation": transl_n[t][None] * to_unit,
             "rotation": pose_n[t, 0:3][None],
             "neck_pose": pose_n[t, 3:6][None],
             "jaw_pose": pose_n[t, 6:9][None],
@@ -264,14 +281,17 @@ def synthesize(
             "expr": expr_n[t][None],
         }
 
-    with SubjectWriter(out, camera, overwrite=True, test_last=config.test_last) as writer:
-        save_head(head, writer.staging / "head.npz")
+    written_camera = Camera(
+        camera.K, _scaled_translation(camera.viewmat, to_unit), camera.width, camera.height
+    )
+    with SubjectWriter(out, written_camera, overwrite=True, test_last=config.test_last) as writer:
+        save_head(scaled_head(head, to_unit), writer.staging / "head.npz")
         np.savez(
             writer.staging / "synthetic_ground_truth.npz",
             shape=look.shape,
             expr=perf.expr,
             pose=perf.pose,
-            transl=perf.transl,
+            transl=perf.transl * to_unit,
         )
         frames = tqdm(total=config.frames, desc="urhead synth", unit="frame", disable=not progress)
         # A pipeline that keeps every core busy: while frame t is ray-traced (Rust, GIL
@@ -309,6 +329,25 @@ def synthesize(
         }
         (writer.staging / "synthetic.json").write_text(json.dumps(meta, indent=1))
     return out
+
+
+def scaled_head(head, factor: float):
+    """``head`` with every length multiplied by ``factor`` (template and the shape, expression
+    and pose blendshapes; the joints follow through the regressor)."""
+    if factor == 1.0:
+        return head
+    return replace(
+        head,
+        v_template=head.v_template * factor,
+        shapedirs=head.shapedirs * factor,
+        posedirs=head.posedirs * factor,
+    )
+
+
+def _scaled_translation(viewmat: torch.Tensor, factor: float) -> torch.Tensor:
+    scaled = viewmat.clone()
+    scaled[:3, 3] *= factor
+    return scaled
 
 
 def _lbs(tables, betas, pose, transl):
@@ -584,6 +623,20 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--background", default="white", help="background colour: white, black or R,G,B (0-255)"
     )
+    p.add_argument(
+        "--motion",
+        choices=list(MOTIONS),
+        default=defaults.motion,
+        help="talking; extreme: ±90° yaw, ±45° pitch, jaw wide open, eyes at their limits; "
+        "off_screen: the head half and wholly out of view (default %(default)s)",
+    )
+    p.add_argument(
+        "--length-unit",
+        type=float,
+        default=defaults.length_unit,
+        help="metres per length unit of the written files: 0.001 = millimetres "
+        "(default %(default)s)",
+    )
     p.add_argument("--contact-sheet", help="also write a grid of frames to this PNG")
     p.add_argument(
         "--force", action="store_true", help="replace an existing folder that is not a subject"
@@ -622,6 +675,8 @@ def config_from_args(args: argparse.Namespace) -> SynthConfig:
         hair=args.hair,
         tracking_noise=args.tracking_noise,
         background=parse_background(args.background),
+        motion=args.motion,
+        length_unit=args.length_unit,
     ).resolved()
 
 

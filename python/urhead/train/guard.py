@@ -3,10 +3,10 @@
 Every iteration's step is inspected before the optimisers apply it. It is bad when
 
 - non-finite: the loss, or a gradient entry of some parameter group, is NaN or infinite;
-- exploding: the loss exceeds ``LOSS_JUMP`` times the loss the same frame had at its
-  previous visit (times the median of the recent accepted losses for a frame not seen
-  yet), or one group's largest gradient exceeds ``GRADIENT_JUMP`` times the median of that
-  group's recent largest gradients.
+- exploding: the loss exceeds ``LOSS_JUMP`` times the larger of the loss the same frame
+  had at its previous visit and the median of the recent accepted losses, or one group's
+  largest gradient exceeds ``GRADIENT_JUMP`` times the median of that group's recent
+  largest gradients.
 
 A bad step is not applied. The parameters and Adam moments go back to the last good
 state, the learning rate of the group it came from is halved (the group whose gradient
@@ -200,9 +200,10 @@ class StepGuard:
         if ratio[worst] > GRADIENT_JUMP:
             detail = f"largest gradient {float(peaks[worst]):.3g}, {float(ratio[worst]):.3g}×"
             return "gradient jump", self.groups[worst], detail + " its recent median"
-        reference = self.frame_loss.get(row)
-        if reference is None:
-            reference = float(torch.tensor(list(self.losses)).median())
+        # A frame that shows almost nothing (off-screen) has a loss near 0: judged against
+        # the recent median too, its jumps are measured on the scale of the whole fit.
+        reference = float(torch.tensor(list(self.losses)).median())
+        reference = max(reference, self.frame_loss.get(row, reference))
         if loss > LOSS_JUMP * reference:
             return "loss jump", self._most_unusual(peaks), f"loss {loss:.4g} vs {reference:.4g}"
         return None

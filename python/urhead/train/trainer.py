@@ -38,6 +38,7 @@ from urhead.train.checkpoint import (
 from urhead.train.guard import StepGuard
 from urhead.train.loss import training_loss, uv_error_samples
 from urhead.train.plots import plot_psnr_vs_time
+from urhead.train.units import check_metres
 
 log = logging.getLogger("urhead.fit")
 
@@ -116,6 +117,7 @@ class Trainer:
             raise ValueError(f"{subject.root}: the subject has no training frames")
         if len(self.held_out) == 0:
             raise ValueError(f"{subject.root}: the subject has no test or val frames to score")
+        check_metres(subject, head)
         requested = None if config.background == "auto" else config.background
         self.background = subject_background(subject, requested)
 
