@@ -73,18 +73,19 @@ def finite_state(avatar) -> bool:
 
 
 class Watch:
-    """Wraps :meth:`StepGuard.admit` to see every step's loss and gradients."""
+    """Wraps :meth:`StepGuard.step` to see every step's loss and gradients."""
 
     def __init__(self, monkeypatch):
         self.steps = []  # (iteration, row, loss, maps grad or None, frames grad or None)
-        admit = StepGuard.admit
+        step = StepGuard.step
         watch = self
 
-        def watched(guard, iteration, row, loss, maps_grad, frames_grad):
-            watch.steps.append((iteration, row, float(loss), maps_grad, frames_grad))
-            return admit(guard, iteration, row, loss, maps_grad, frames_grad)
+        def watched(guard, iteration, row, loss):
+            grads = guard.maps.grad, guard.frames.grad
+            watch.steps.append((iteration, row, float(loss), *grads))
+            return step(guard, iteration, row, loss)
 
-        monkeypatch.setattr(StepGuard, "admit", watched)
+        monkeypatch.setattr(StepGuard, "step", watched)
 
     def non_finite(self) -> int:
         """Non-finite losses and gradient entries over all steps."""

@@ -1,12 +1,14 @@
 """urhead.optim.SparseAdam against the plain-torch reference, NUMERICS.md case 25, and
 the sparse contract (untouched texels bit-identical, sparse and dense gradients agree)."""
 
+import math
+
 import pytest
 import torch
 
 from urhead.errors import InvalidArgumentError, ShapeError
 from urhead.ops import _reference as ref
-from urhead.optim import SparseAdam
+from urhead.optim import RowJournal, SparseAdam
 
 H, W, C = 16, 12, 5
 LR = torch.tensor([5e-4, 1e-3, 5e-3, 5e-2, 1e-5])
@@ -164,3 +166,33 @@ def test_state_dict_round_trip_keeps_int32_steps_and_continues_identically():
         opt_a.step()
         restored.step()
     assert torch.equal(a, b)
+
+
+def test_a_reported_step_gives_channel_peaks_and_a_journal_undoes_its_steps_exactly():
+    g = torch.Generator().manual_seed(3)
+    param = torch.randn(H, W, C, generator=g)
+    opt = SparseAdam([param], lr=LR)
+    param.grad = sparse_grad(torch.tensor([0, 5]), torch.randn(2, C, generator=g))
+    opt.step()  # moments exist and are non-zero before the journal starts
+    state = opt.state[param]
+    before = [t.clone() for t in (param, state["exp_avg"], state["exp_avg_sq"], state["steps"])]
+    journal = RowJournal(H * W, C)
+    for it in range(3):
+        rows = torch.tensor([5, 7 + it, 30])
+        values = torch.randn(3, C, generator=g)
+        values[2, 1] = float("nan") if it == 1 else values[2, 1]
+        param.grad = sparse_grad(rows, values)
+        report = opt.step_reported(journal)
+        expected = values.abs().amax(0)
+        expected[1] = math.inf if it == 1 else expected[1]
+        assert torch.equal(report.peaks, expected)
+        assert (report.rejected_rows, report.non_finite_rows) == (int(it == 1), 0)
+    assert len(journal) == 5  # rows 5, 7, 8, 9, 30, each saved once
+    flat = [param.reshape(-1, C), state["exp_avg"].reshape(-1, C)]
+    journal.restore(
+        *(t.numpy() for t in flat),
+        state["exp_avg_sq"].reshape(-1, C).numpy(),
+        state["steps"].numpy(),
+    )
+    after = (param, state["exp_avg"], state["exp_avg_sq"], state["steps"])
+    assert all(torch.equal(a, b) for a, b in zip(after, before, strict=True))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
 
 import torch
 
@@ -43,6 +44,27 @@ def rows_and_values(param: torch.Tensor, grad: torch.Tensor) -> tuple[torch.Tens
     flat = grad.reshape(-1, channels)
     rows = (flat != 0).any(1).nonzero()[:, 0]
     return rows, flat[rows].to(torch.float32).contiguous()
+
+
+RowJournal = _core.RowJournal
+"""``RowJournal(rows, channels)``: the values the rows of one ``(rows, channels)`` table had
+before steps given it first changed them since its last ``clear()``; ``restore(param,
+exp_avg, exp_avg_sq, steps)`` (flat ``(N, C)`` views and ``(N,)`` counts) writes them back.
+Its buffers keep their capacity across clears."""
+
+
+@dataclass(frozen=True)
+class StepReport:
+    """What one step of one table saw and did."""
+
+    peaks: torch.Tensor
+    """(C,) each channel's largest gradient magnitude; +inf where an entry was NaN or
+    infinite; 0 when the table had no gradient."""
+    rejected_rows: int
+    """Rows skipped whole for a NaN or infinite gradient entry."""
+    non_finite_rows: int
+    """Rows whose updated values came out NaN or infinite (written; saved first in a
+    journal)."""
 
 
 class SparseAdam(torch.optim.Optimizer):
@@ -100,32 +122,48 @@ class SparseAdam(torch.optim.Optimizer):
             with torch.enable_grad():
                 loss = closure()
         for group in self.param_groups:
-            beta1, beta2 = group["betas"]
             for p in group["params"]:
-                if p.grad is None:
-                    continue
-                channels = p.shape[-1]
-                state = self.state[p]
-                if not state:
-                    state["exp_avg"] = torch.zeros_like(p)
-                    state["exp_avg_sq"] = torch.zeros_like(p)
-                    state["steps"] = torch.zeros(p.numel() // channels, dtype=torch.int32)
-                    state["rejected_rows"] = 0
-                rows, values = rows_and_values(p, p.grad)
-                if rows.numel() == 0:
-                    continue
-                rejected = _core.sparse_adam_step(
-                    p.detach().numpy().reshape(-1, channels),
-                    state["exp_avg"].numpy().reshape(-1, channels),
-                    state["exp_avg_sq"].numpy().reshape(-1, channels),
-                    state["steps"].numpy(),
-                    rows.numpy(),
-                    values.numpy(),
-                    _channel_lr(group["lr"], channels).numpy(),
-                    float(beta1),
-                    float(beta2),
-                    float(group["eps"]),
-                    num_threads(),
-                )
-                state["rejected_rows"] += rejected
+                self._step_table(group, p)
         return loss
+
+    @torch.no_grad()
+    def step_reported(self, journal: RowJournal | None = None) -> StepReport:
+        """One step of an optimiser of a single table, saving the rows it changes into
+        ``journal`` first (if given), and what it saw: the step's inspection costs no pass
+        over the gradient beyond the update's own."""
+        [[group, p]] = [(g, p) for g in self.param_groups for p in g["params"]]
+        report = self._step_table(group, p, journal)
+        if report is None:
+            return StepReport(torch.zeros(p.shape[-1]), 0, 0)
+        return report
+
+    def _step_table(self, group: dict, p: torch.Tensor, journal=None) -> StepReport | None:
+        if p.grad is None:
+            return None
+        channels = p.shape[-1]
+        state = self.state[p]
+        if not state:
+            state["exp_avg"] = torch.zeros_like(p)
+            state["exp_avg_sq"] = torch.zeros_like(p)
+            state["steps"] = torch.zeros(p.numel() // channels, dtype=torch.int32)
+            state["rejected_rows"] = 0
+        rows, values = rows_and_values(p, p.grad)
+        if rows.numel() == 0:
+            return None
+        beta1, beta2 = group["betas"]
+        rejected, non_finite, peaks = _core.sparse_adam_step(
+            p.detach().numpy().reshape(-1, channels),
+            state["exp_avg"].numpy().reshape(-1, channels),
+            state["exp_avg_sq"].numpy().reshape(-1, channels),
+            state["steps"].numpy(),
+            rows.numpy(),
+            values.numpy(),
+            _channel_lr(group["lr"], channels).numpy(),
+            float(beta1),
+            float(beta2),
+            float(group["eps"]),
+            num_threads(),
+            journal,
+        )
+        state["rejected_rows"] += rejected
+        return StepReport(torch.from_numpy(peaks), rejected, non_finite)

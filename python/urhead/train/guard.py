@@ -1,27 +1,30 @@
 """The step guard: keeps non-finite and diverging steps out of the fit (NUMERICS.md case 31).
 
-Every iteration's step is inspected before the optimisers apply it. It is bad when
+The guard applies every iteration's step itself (through the two optimisers) and judges
+it. A step is bad when
 
-- non-finite: the loss, or a gradient entry of some parameter group, is NaN or infinite;
+- non-finite: the loss, or a gradient entry of some parameter group, is NaN or infinite,
+  or an update came out non-finite;
 - exploding: the loss exceeds ``LOSS_JUMP`` times the larger of the loss the same frame
   had at its previous visit and the median of the recent accepted losses, or one group's
   largest gradient exceeds ``GRADIENT_JUMP`` times the median of that group's recent
   largest gradients.
 
-A bad step is not applied. The parameters and Adam moments go back to the last good
-state, the learning rate of the group it came from is halved (the group whose gradient
-stands out most against its own recent median, for a loss jump), and a warning names the
+A bad step is undone: the parameters and Adam moments go back to the last good state,
+the learning rate of the group it came from is halved (the group whose gradient stands
+out most against its own recent median, for a loss jump), and a warning names the
 iteration, what went wrong and the group. The good states are the starts of windows of
-``WINDOW`` iterations: a window ends when the next step's loss is judged good and every row
-the window changed is finite; :meth:`StepGuard.settle` ends the current one (on finiteness
-alone) before a checkpoint or the avatar is written, so neither ever holds a non-finite
-value.
+``WINDOW`` iterations: a window ends when the next step's loss is judged good (it vouches
+for the state the window's steps made); :meth:`StepGuard.settle` ends the current one
+after checking every table is finite, before a checkpoint or the avatar is written, so
+neither ever holds a non-finite value.
 
-Memory and time: the maps' snapshot is copy-on-write — a texel row and its moments are
-copied the first time a step of the window is about to change them — so it holds the
-texels one window touched, never a second atlas; the frame table is small and copied
-whole. Per iteration the guard reads each gradient once (its largest magnitude per
-channel) and copies the rows not yet saved in the window.
+Cost: the optimiser's kernel does the inspection in its own pass over the gradient (each
+channel's largest magnitude, rows rejected for a non-finite entry, updates that came out
+non-finite), and saves each map row into a persistent journal just before the window's
+first step that changes it: one copy per distinct row per window, never a second atlas.
+Nothing non-finite can enter the state without a step reporting it, so windows end
+without scanning the tables. The frame table is small and copied whole per window.
 """
 
 from __future__ import annotations
@@ -31,12 +34,11 @@ import math
 from collections import deque
 from dataclasses import asdict, dataclass
 
-import numpy as np
 import torch
 
 from urhead.errors import NonFiniteError
 from urhead.model.avatar import POSE_SIZE, Avatar
-from urhead.optim import SparseAdam, rows_and_values
+from urhead.optim import RowJournal, SparseAdam, StepReport
 
 log = logging.getLogger("urhead.fit")
 
@@ -80,7 +82,7 @@ class _Group:
 
 
 class StepGuard:
-    """Inspects, snapshots and rolls back the steps of one fit's two optimisers.
+    """Applies, judges and rolls back the steps of one fit's two optimisers.
 
     ``map_lr`` (C,) is the trainer's base per-channel map rate (cut in place); the frame
     rates are the frame optimiser's own per-channel ``lr`` tensor. ``start`` is the
@@ -114,20 +116,24 @@ class StepGuard:
         self.frame_loss: dict[int, float] = {}
         self.strikes: dict[int, int] = {}  # loss jumps of a frame since it was last accepted
         self.events: list[GuardEvent] = []
+        self.journal = RowJournal(self.maps.numel() // self.maps.shape[-1], self.maps.shape[-1])
         self._begin_window(start)
 
     # --- the per-iteration calls ----------------------------------------------------
 
-    def admit(self, iteration: int, row: int, loss: torch.Tensor, maps_grad, frames_grad) -> bool:
-        """Whether the step of ``iteration`` (training frame ``row``, its ``loss`` and the
-        two tables' gradients) may be applied. If so, the rows it will change are saved
-        first; if not, the fit is rolled back and the group's rate cut."""
+    def step(self, iteration: int, row: int, loss: torch.Tensor) -> bool:
+        """Applies the step of ``iteration`` (training frame ``row``, its ``loss``, the
+        gradients on the two tables' ``.grad``) and judges it. Returns whether it stands;
+        a bad step is undone with the rest of its window and its group's rate cut."""
         value = float(loss)
-        map_rows, map_values = self._rows_and_values(self.maps, maps_grad)
-        _, frame_values = self._rows_and_values(self.frames, frames_grad)
-        channel_peaks = {"maps": _peaks(map_values), "frames": _peaks(frame_values)}
+        loss_problem = self._judge_loss(value, row)
+        if loss_problem is None and self._window_due:  # the loss vouches for the state
+            self._begin_window(iteration)
+        maps = self.maps_opt.step_reported(self.journal)
+        frames = self.frames_opt.step_reported()
+        channel_peaks = {"maps": maps.peaks, "frames": frames.peaks}
         peaks = torch.stack([channel_peaks[g.table][g.channels].amax() for g in self.groups])
-        problem = self._judge(value, row, peaks)
+        problem = self._judge(peaks, (maps, frames), loss_problem)
         if problem is not None:
             kind, group, detail = problem
             if kind == "loss jump":
@@ -138,9 +144,6 @@ class StepGuard:
         self.peaks.append(peaks)
         self.frame_loss[row] = value
         self.strikes.pop(row, None)
-        if self._window_due:  # this loss vouches for the state the last steps made
-            self.settle(iteration)
-        self._save_rows(map_rows)
         return True
 
     def end_iteration(self, iteration: int) -> None:
@@ -150,15 +153,13 @@ class StepGuard:
 
     def settle(self, iteration: int) -> None:
         """Ends the current window at ``iteration``: the state becomes the last good one if
-        every row the window changed is finite, else the window is rolled back. Call before
-        writing the state anywhere."""
-        rows = torch.cat(self._rows) if self._rows else torch.zeros(0, dtype=torch.int64)
-        for name, table in self._tables(rows):
-            if not bool(torch.isfinite(table).all()):  # a flat reduction: fast
-                bad = ~torch.isfinite(table).all(0)
-                group = self._group_of_channel(name, int(bad.nonzero()[0, 0]))
-                self._roll_back(iteration, "non-finite state", group, f"in {name}")
-                return
+        every table is finite (one flat pass each), else the window is rolled back. Call
+        before writing the state anywhere."""
+        found = self._first_non_finite()
+        if found is not None:
+            table, group = found
+            self._roll_back(iteration, "non-finite state", group, f"in {table}")
+            return
         self._begin_window(iteration)
 
     # --- checkpoints ------------------------------------------------------------------
@@ -186,27 +187,38 @@ class StepGuard:
 
     # --- inside -----------------------------------------------------------------------
 
-    def _judge(self, loss: float, row: int, peaks: torch.Tensor):
-        """``(kind, group, detail)`` of a bad step, None for a good one."""
-        if not torch.isfinite(peaks).all():
-            group = self.groups[int((~torch.isfinite(peaks)).nonzero()[0, 0])]
-            return "non-finite gradient", group, "NaN or infinite entries"
+    def _judge_loss(self, loss: float, row: int) -> tuple[str, str] | None:
+        """``(kind, detail)`` of a bad loss, None for a good one."""
         if not math.isfinite(loss):
-            return "non-finite loss", self._most_unusual(peaks), f"loss {loss}"
+            return "non-finite loss", f"loss {loss}"
         if len(self.losses) < WARMUP:
             return None
-        history = torch.stack(list(self.peaks))
-        ratio = _ratio_to_median(peaks, history)
-        worst = int(ratio.argmax())
-        if ratio[worst] > GRADIENT_JUMP:
-            detail = f"largest gradient {float(peaks[worst]):.3g}, {float(ratio[worst]):.3g}×"
-            return "gradient jump", self.groups[worst], detail + " its recent median"
         # A frame that shows almost nothing (off-screen) has a loss near 0: judged against
         # the recent median too, its jumps are measured on the scale of the whole fit.
         reference = float(torch.tensor(list(self.losses)).median())
         reference = max(reference, self.frame_loss.get(row, reference))
         if loss > LOSS_JUMP * reference:
-            return "loss jump", self._most_unusual(peaks), f"loss {loss:.4g} vs {reference:.4g}"
+            return "loss jump", f"loss {loss:.4g} vs {reference:.4g}"
+        return None
+
+    def _judge(self, peaks: torch.Tensor, reports: tuple[StepReport, ...], loss_problem):
+        """``(kind, group, detail)`` of a bad step, None for a good one."""
+        if not torch.isfinite(peaks).all():
+            group = self.groups[int((~torch.isfinite(peaks)).nonzero()[0, 0])]
+            return "non-finite gradient", group, "NaN or infinite entries"
+        if any(r.non_finite_rows for r in reports):
+            table, group = self._first_non_finite()
+            return "non-finite update", group, f"in {table}"
+        if loss_problem is not None and loss_problem[0] == "non-finite loss":
+            return loss_problem[0], self._most_unusual(peaks), loss_problem[1]
+        if len(self.losses) >= WARMUP:
+            ratio = _ratio_to_median(peaks, torch.stack(list(self.peaks)))
+            worst = int(ratio.argmax())
+            if ratio[worst] > GRADIENT_JUMP:
+                detail = f"largest gradient {float(peaks[worst]):.3g}, {float(ratio[worst]):.3g}×"
+                return "gradient jump", self.groups[worst], detail + " its recent median"
+        if loss_problem is not None:
+            return loss_problem[0], self._most_unusual(peaks), loss_problem[1]
         return None
 
     def _strike(self, row: int, loss: float) -> None:
@@ -246,66 +258,49 @@ class StepGuard:
     def _begin_window(self, iteration: int) -> None:
         self.window_start = iteration
         self._window_due = False
-        self._rows: list[torch.Tensor] = []  # per saved chunk: (K,) rows of the maps
-        self._saved: list[tuple] = []  # per chunk: values, exp_avg, exp_avg_sq, steps
-        self._is_saved = torch.zeros(self.maps.numel() // self.maps.shape[-1], dtype=torch.bool)
+        self.journal.clear()
         state = self.frames_opt.state.get(self.frames, {})
         self._frames_saved = (
             self.frames.detach().clone(),
             {k: v.clone() if torch.is_tensor(v) else v for k, v in state.items()},
         )
 
-    def _save_rows(self, rows: torch.Tensor) -> None:
-        new = rows[~self._is_saved[rows]]
-        if new.numel() == 0:
-            return
-        self._is_saved[new] = True
-        flat = self._flat(self.maps)
-        state = self.maps_opt.state.get(self.maps, {})
-        if state:
-            moments = (
-                self._flat(state["exp_avg"])[new],
-                self._flat(state["exp_avg_sq"])[new],
-                state["steps"][new],
-            )
-        else:  # before the first step the moments are zero (SparseAdam creates them lazily)
-            zeros = torch.zeros(len(new), flat.shape[1])
-            moments = (zeros, zeros, torch.zeros(len(new), dtype=torch.int32))
-        self._rows.append(new)
-        self._saved.append((flat[new], *moments))
-
     def _restore(self) -> None:
         with torch.no_grad():
-            flat = self._flat(self.maps)
             state = self.maps_opt.state.get(self.maps, {})
-            for rows, (values, exp_avg, exp_avg_sq, steps) in zip(
-                self._rows, self._saved, strict=True
-            ):
-                flat[rows] = values
-                if state:
-                    self._flat(state["exp_avg"])[rows] = exp_avg
-                    self._flat(state["exp_avg_sq"])[rows] = exp_avg_sq
-                    state["steps"][rows] = steps
+            if state:  # else no step has run, so the journal is empty
+                self.journal.restore(
+                    self._flat(self.maps).numpy(),
+                    self._flat(state["exp_avg"]).numpy(),
+                    self._flat(state["exp_avg_sq"]).numpy(),
+                    state["steps"].numpy(),
+                )
             frames, moments = self._frames_saved
             self.frames.copy_(frames)
             live = self.frames_opt.state[self.frames]
             live.clear()
             live.update({k: v.clone() if torch.is_tensor(v) else v for k, v in moments.items()})
 
-    def _tables(self, rows: torch.Tensor):
-        """``(name, (K, C) table)`` of what the window may have changed: the maps' saved
-        rows, their moments, and the frame table with its moments."""
-        flat = self._flat(self.maps)
-        yield "maps", flat[rows].detach()
-        state = self.maps_opt.state.get(self.maps, {})
-        for key in ("exp_avg", "exp_avg_sq"):
-            if key in state:
-                yield f"maps' Adam {key}", self._flat(state[key])[rows]
-        yield "frames", self.frames.detach()
-        state = self.frames_opt.state.get(self.frames, {})
-        for key in ("exp_avg", "exp_avg_sq"):
-            if key in state:
-                yield f"frames' Adam {key}", state[key]
+    def _first_non_finite(self) -> tuple[str, _Group] | None:
+        """``(table, group)`` of the first NaN or infinity in the parameters or moments,
+        None if all are finite."""
+        for name, table in self._tables():
+            if not bool(torch.isfinite(table).all()):  # a flat reduction: fast
+                channel = int((~torch.isfinite(table).all(0)).nonzero()[0, 0])
+                return name, self._group_of_channel(name, channel)
+        return None
+
+    def _tables(self):
+        """``(name, (N, C) table)`` of everything a step changes."""
+        for owner, param, opt in (
+            ("maps", self.maps, self.maps_opt),
+            ("frames", self.frames, self.frames_opt),
+        ):
+            yield owner, self._flat(param)
+            state = opt.state.get(param, {})
+            for key in ("exp_avg", "exp_avg_sq"):
+                if key in state:
+                    yield f"{owner}' Adam {key}", self._flat(state[key])
 
     def _group_of_channel(self, table_name: str, channel: int) -> _Group:
         table = "maps" if table_name.startswith("maps") else "frames"
@@ -318,22 +313,6 @@ class StepGuard:
     @staticmethod
     def _flat(table: torch.Tensor) -> torch.Tensor:
         return table.detach().view(-1, table.shape[-1])
-
-    @staticmethod
-    def _rows_and_values(table: torch.Tensor, grad) -> tuple[torch.Tensor, torch.Tensor]:
-        if grad is None:
-            return torch.zeros(0, dtype=torch.int64), torch.zeros(0, table.shape[-1])
-        return rows_and_values(table, grad)
-
-
-def _peaks(values: torch.Tensor) -> torch.Tensor:
-    """(C,) the largest gradient magnitude per channel of ``values`` (K, C): NaN where
-    one is NaN, 0 for no rows."""
-    if values.shape[0] == 0:
-        return torch.zeros(values.shape[1])
-    # numpy reduces over rows 4-5x faster than torch's amax(0) (measured, 150k × 60).
-    table = values.detach().numpy()
-    return torch.from_numpy(np.maximum(table.max(0), -table.min(0)))
 
 
 def _ratio_to_median(peaks: torch.Tensor, history: torch.Tensor) -> torch.Tensor:

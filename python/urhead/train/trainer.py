@@ -274,10 +274,7 @@ class Trainer:
         )
         loss.total.backward()
         avatar.maps.grad = gather.gradient()
-        grads = avatar.maps.grad, avatar.frame_params.grad
-        if state.guard.admit(it, row, loss.total.detach(), *grads):
-            state.maps_opt.step()
-            state.frames_opt.step()
+        if state.guard.step(it, row, loss.total.detach()):  # applies the step, or undoes it
             if self.adaptive:
                 state.accumulator.add(*uv_error_samples(render, frame))
             if render.gaussians is not None:

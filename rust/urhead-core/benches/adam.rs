@@ -35,7 +35,7 @@ fn bench_adam(c: &mut Criterion) {
                     steps: &mut steps,
                     channels: CHANNELS,
                 };
-                sparse_adam_step(&mut state, &rows, &grads, &lr, &config).unwrap()
+                sparse_adam_step(&mut state, &rows, &grads, &lr, &config, None).unwrap()
             })
         });
     }

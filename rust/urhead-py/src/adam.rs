@@ -1,10 +1,11 @@
-//! Binding of `urhead_core::adam`: updates the optimiser state in place.
+//! Binding of `urhead_core::adam`: updates the optimiser state in place; `RowJournal`
+//! crosses to Python as an opaque object the step saves rows into.
 
-use numpy::{PyReadonlyArrayDyn, PyReadwriteArrayDyn};
+use numpy::{PyArrayDyn, PyReadonlyArrayDyn, PyReadwriteArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
-use urhead_core::adam::{sparse_adam_step as step, AdamConfig, SparseAdamState};
+use urhead_core::adam::{sparse_adam_step as step, AdamConfig, RowJournal as CoreJournal, SparseAdamState};
 
-use crate::arrays::data;
+use crate::arrays::{array, data};
 use crate::errors::{py_err, InvalidArgumentError};
 use crate::pool::with_threads;
 
@@ -17,11 +18,59 @@ fn data_mut<'a, T: numpy::Element>(
     })
 }
 
-/// One sparse Adam step over `rows` of the `(N, C)` tables; returns the number of rows
-/// rejected for non-finite gradients.
+/// The values rows of one `(rows, channels)` table had before steps first changed them
+/// since the last `clear()`; `restore(...)` writes them back.
+#[pyclass(module = "urhead._core")]
+pub struct RowJournal {
+    journal: CoreJournal,
+}
+
+#[pymethods]
+impl RowJournal {
+    #[new]
+    fn new(rows: usize, channels: usize) -> Self {
+        Self {
+            journal: CoreJournal::new(rows, channels),
+        }
+    }
+
+    fn __len__(&self) -> usize {
+        self.journal.len()
+    }
+
+    fn clear(&mut self) {
+        self.journal.clear();
+    }
+
+    /// Writes the saved rows back into the `(N, C)` tables and `(N,)` step counts.
+    fn restore(
+        &self,
+        mut param: PyReadwriteArrayDyn<'_, f32>,
+        mut exp_avg: PyReadwriteArrayDyn<'_, f32>,
+        mut exp_avg_sq: PyReadwriteArrayDyn<'_, f32>,
+        mut steps: PyReadwriteArrayDyn<'_, i32>,
+    ) -> PyResult<()> {
+        let channels = param.shape().last().copied().unwrap_or(0);
+        let mut state = SparseAdamState {
+            param: data_mut(&mut param, "param")?,
+            exp_avg: data_mut(&mut exp_avg, "exp_avg")?,
+            exp_avg_sq: data_mut(&mut exp_avg_sq, "exp_avg_sq")?,
+            steps: data_mut(&mut steps, "steps")?,
+            channels,
+        };
+        self.journal.restore(&mut state).map_err(py_err)
+    }
+}
+
+/// One sparse Adam step over `rows` of the `(N, C)` tables, saving rows into `journal`
+/// first when given. Returns `(rejected_rows, non_finite_rows, peaks (C,))`: rows skipped
+/// for a non-finite gradient, rows whose update came out non-finite, and each channel's
+/// largest gradient magnitude (+inf where an entry was non-finite).
 #[pyfunction]
-pub fn sparse_adam_step(
-    py: Python<'_>,
+#[pyo3(signature = (param, exp_avg, exp_avg_sq, steps, rows, grads, lr, beta1, beta2, eps, num_threads, journal=None))]
+#[allow(clippy::too_many_arguments)]
+pub fn sparse_adam_step<'py>(
+    py: Python<'py>,
     mut param: PyReadwriteArrayDyn<'_, f32>,
     mut exp_avg: PyReadwriteArrayDyn<'_, f32>,
     mut exp_avg_sq: PyReadwriteArrayDyn<'_, f32>,
@@ -33,8 +82,9 @@ pub fn sparse_adam_step(
     beta2: f64,
     eps: f64,
     num_threads: usize,
-) -> PyResult<usize> {
-    let channels = lr.len()?;
+    mut journal: Option<PyRefMut<'_, RowJournal>>,
+) -> PyResult<(usize, usize, Bound<'py, PyArrayDyn<f32>>)> {
+    let channels = lr.len();
     let mut state = SparseAdamState {
         param: data_mut(&mut param, "param")?,
         exp_avg: data_mut(&mut exp_avg, "exp_avg")?,
@@ -44,6 +94,14 @@ pub fn sparse_adam_step(
     };
     let (rows, grads, lr) = (data(&rows, "rows")?, data(&grads, "grads")?, data(&lr, "lr")?);
     let config = AdamConfig { beta1, beta2, eps };
-    py.allow_threads(|| with_threads(num_threads, || step(&mut state, rows, grads, lr, &config)))
-        .map_err(py_err)
+    let journal = journal.as_deref_mut().map(|j| &mut j.journal);
+    let report = py
+        .allow_threads(|| {
+            with_threads(num_threads, || {
+                step(&mut state, rows, grads, lr, &config, journal)
+            })
+        })
+        .map_err(py_err)?;
+    let peaks = array(py, report.peaks, &[channels])?;
+    Ok((report.rejected_rows, report.non_finite_rows, peaks))
 }

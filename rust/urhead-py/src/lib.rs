@@ -29,6 +29,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("SizeLimitError", py.get_type::<errors::SizeLimitError>())?;
     m.add_function(wrap_pyfunction!(camera::check_camera, m)?)?;
     m.add_function(wrap_pyfunction!(adam::sparse_adam_step, m)?)?;
+    m.add_class::<adam::RowJournal>()?;
     m.add_function(wrap_pyfunction!(lbs::lbs_forward_f32, m)?)?;
     m.add_function(wrap_pyfunction!(lbs::lbs_backward_f32, m)?)?;
     m.add_function(wrap_pyfunction!(lbs::lbs_forward_f64, m)?)?;

@@ -11,8 +11,18 @@
 //! (moments, count and parameter untouched) and counted; rows with |g| > 1e18 update in
 //! f64 so g² cannot overflow; every step is clamped to lr·max(1, (1 − β1)/√(1 − β2)), the bound
 //! an exact Adam step satisfies.
+//!
+//! For a caller that judges steps (the trainer's step guard), a step reports what it saw:
+//! each channel's largest gradient, the rows it rejected and any row whose update came out
+//! non-finite; with a [`RowJournal`] it also saves every row before first changing it, so a
+//! bad step (or window of steps) can be undone bit for bit. All of it is gathered in the
+//! step's own pass over the rows, where the data is already in cache.
+
+mod journal;
 
 use rayon::prelude::*;
+
+pub use journal::RowJournal;
 
 use crate::error::{check_len, Error, Result};
 
@@ -62,16 +72,30 @@ pub struct SparseAdamState<'a> {
     pub channels: usize,
 }
 
+/// What one step saw and did.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StepReport {
+    /// Rows skipped whole for a NaN or infinite gradient entry.
+    pub rejected_rows: usize,
+    /// Rows whose updated parameters or moments came out NaN or infinite (possible only for
+    /// values near f32::MAX); they are written, and saved first when a journal is given.
+    pub non_finite_rows: usize,
+    /// `(C,)` each channel's largest gradient magnitude over the step's rows; +∞ for a
+    /// channel with a NaN or infinite entry, 0 for no rows.
+    pub peaks: Vec<f32>,
+}
+
 /// One sparse step. `rows (K,)` must be strictly increasing row indices (a coalesced
-/// sparse gradient), `grads (K, C)` their gradients, `lr (C,)` per-channel rates.
-/// Returns the number of rows rejected for a non-finite gradient.
+/// sparse gradient), `grads (K, C)` their gradients, `lr (C,)` per-channel rates. With a
+/// `journal`, every row not yet in it is saved before the step writes it.
 pub fn sparse_adam_step(
     state: &mut SparseAdamState<'_>,
     rows: &[i64],
     grads: &[f32],
     lr: &[f32],
     config: &AdamConfig,
-) -> Result<usize> {
+    journal: Option<&mut RowJournal>,
+) -> Result<StepReport> {
     let c = state.channels;
     if c == 0 {
         return Err(Error::Shape {
@@ -124,6 +148,10 @@ pub fn sparse_adam_step(
             });
         }
     }
+    if let Some(journal) = journal {
+        journal.check(state)?;
+        journal.save(state, rows);
+    }
 
     // Rows are strictly increasing, so each chunk of `rows` owns a disjoint, ordered set
     // of table rows; split the tables at the chunk boundaries to hand them out safely.
@@ -146,34 +174,59 @@ pub fn sparse_adam_step(
         (param, m, v, steps) = (p_tail, m_tail, v_tail, s_tail);
         offset = end;
     }
-    let rejected: usize = work
-        .into_par_iter()
-        .map(|(k, base, chunk, p, m, v, s)| {
-            let mut rejected = 0;
-            for (i, &row) in chunk.iter().enumerate() {
-                let g = &grads[(k * ROW_CHUNK + i) * c..(k * ROW_CHUNK + i + 1) * c];
-                if g.iter().any(|x| !x.is_finite()) {
-                    rejected += 1;
-                    continue;
-                }
-                let local = row as usize - base;
-                let t = s[local].saturating_add(1);
-                s[local] = t;
-                let (p, m, v) = (
-                    &mut p[local * c..(local + 1) * c],
-                    &mut m[local * c..(local + 1) * c],
-                    &mut v[local * c..(local + 1) * c],
-                );
-                if g.iter().all(|x| x.abs() <= F32_SAFE_GRAD) {
-                    update_row_f32(p, m, v, g, lr, t, config);
-                } else {
-                    update_row_f64(p, m, v, g, lr, t, config);
-                }
+    let chunk_reports = work.into_par_iter().map(|(k, base, chunk, p, m, v, s)| {
+        let mut report = StepReport {
+            rejected_rows: 0,
+            non_finite_rows: 0,
+            peaks: vec![0.0; c],
+        };
+        for (i, &row) in chunk.iter().enumerate() {
+            let g = &grads[(k * ROW_CHUNK + i) * c..(k * ROW_CHUNK + i + 1) * c];
+            // f32::max maps a NaN entry to the other operand: non-finite rows set +∞ below.
+            for (peak, x) in report.peaks.iter_mut().zip(g) {
+                *peak = peak.max(x.abs());
             }
-            rejected
-        })
-        .sum();
-    Ok(rejected)
+            if g.iter().any(|x| !x.is_finite()) {
+                for (peak, x) in report.peaks.iter_mut().zip(g) {
+                    if !x.is_finite() {
+                        *peak = f32::INFINITY;
+                    }
+                }
+                report.rejected_rows += 1;
+                continue;
+            }
+            let local = row as usize - base;
+            let t = s[local].saturating_add(1);
+            s[local] = t;
+            let (p, m, v) = (
+                &mut p[local * c..(local + 1) * c],
+                &mut m[local * c..(local + 1) * c],
+                &mut v[local * c..(local + 1) * c],
+            );
+            if g.iter().all(|x| x.abs() <= F32_SAFE_GRAD) {
+                update_row_f32(p, m, v, g, lr, t, config);
+            } else {
+                update_row_f64(p, m, v, g, lr, t, config);
+            }
+            if !p.iter().chain(m.iter()).chain(v.iter()).all(|x| x.is_finite()) {
+                report.non_finite_rows += 1;
+            }
+        }
+        report
+    });
+    let empty = || StepReport {
+        rejected_rows: 0,
+        non_finite_rows: 0,
+        peaks: vec![0.0; c],
+    };
+    Ok(chunk_reports.reduce(empty, |mut a, b| {
+        a.rejected_rows += b.rejected_rows;
+        a.non_finite_rows += b.non_finite_rows;
+        for (x, y) in a.peaks.iter_mut().zip(&b.peaks) {
+            *x = x.max(*y);
+        }
+        a
+    }))
 }
 
 /// Gradients up to this magnitude square safely in f32 (g² ≤ 1e36 < f32::MAX).
@@ -260,9 +313,17 @@ mod tests {
             steps: &mut s,
             channels: 2,
         };
-        let rejected =
-            sparse_adam_step(&mut st, &[3, 7], &[2.0, -1e-30, 5.0, 0.0], &[0.1, 0.01], &CONFIG).unwrap();
-        assert_eq!(rejected, 0);
+        let report = sparse_adam_step(
+            &mut st,
+            &[3, 7],
+            &[2.0, -1e-30, 5.0, 0.0],
+            &[0.1, 0.01],
+            &CONFIG,
+            None,
+        )
+        .unwrap();
+        assert_eq!((report.rejected_rows, report.non_finite_rows), (0, 0));
+        assert_eq!(report.peaks, vec![5.0, 1e-30]);
         assert!((before[6] - p[6] - 0.1).abs() < 1e-6);
         assert_eq!(p[7], before[7]); // |g| = 1e-30 is far below eps: a step of ~1e-17
         assert_eq!(p[15], before[15]); // zero gradient: no move
@@ -282,9 +343,84 @@ mod tests {
             steps: &mut s,
             channels: 1,
         };
-        let err = sparse_adam_step(&mut st, &[2, 1], &[1.0, 1.0], &[0.1], &CONFIG).unwrap_err();
+        let err = sparse_adam_step(&mut st, &[2, 1], &[1.0, 1.0], &[0.1], &CONFIG, None).unwrap_err();
         assert!(matches!(err, Error::Invalid { arg: "rows", .. }));
-        let err = sparse_adam_step(&mut st, &[4], &[1.0], &[0.1], &CONFIG).unwrap_err();
+        let err = sparse_adam_step(&mut st, &[4], &[1.0], &[0.1], &CONFIG, None).unwrap_err();
         assert!(matches!(err, Error::IndexOutOfRange { arg: "rows", .. }));
+    }
+
+    #[test]
+    fn a_journal_restores_every_row_its_steps_changed_bit_for_bit() {
+        let (mut p, mut m, mut v, mut s) = state(6, 2);
+        let before = (p.clone(), m.clone(), v.clone(), s.clone());
+        let mut journal = RowJournal::new(6, 2);
+        let mut st = SparseAdamState {
+            param: &mut p,
+            exp_avg: &mut m,
+            exp_avg_sq: &mut v,
+            steps: &mut s,
+            channels: 2,
+        };
+        let steps: [(&[i64], &[f32]); 3] = [
+            (&[1, 4], &[1.0, -2.0, 3.0, 0.5]),
+            (&[0, 1], &[f32::NAN, 1.0, 2.0, 2.0]),
+            (&[4, 5], &[1e30, 1.0, -1.0, 1.0]),
+        ];
+        for (rows, grads) in steps {
+            sparse_adam_step(&mut st, rows, grads, &[0.1, 0.1], &CONFIG, Some(&mut journal)).unwrap();
+        }
+        assert_eq!(journal.len(), 4); // rows 1, 4, 0, 5, each saved once
+        journal.restore(&mut st).unwrap();
+        assert_eq!((p, m, v, s), before);
+    }
+
+    #[test]
+    fn a_step_reports_non_finite_gradients_per_channel_and_non_finite_results() {
+        let (mut p, mut m, mut v, mut s) = state(3, 3);
+        p[3] = f32::MAX;
+        let mut st = SparseAdamState {
+            param: &mut p,
+            exp_avg: &mut m,
+            exp_avg_sq: &mut v,
+            steps: &mut s,
+            channels: 3,
+        };
+        let grads = [1.0, f32::NAN, -2.0, -1.0, 0.5, 0.25];
+        let report = sparse_adam_step(&mut st, &[0, 1], &grads, &[1.0, 1.0, 1.0], &CONFIG, None).unwrap();
+        assert_eq!(report.peaks, vec![1.0, f32::INFINITY, 2.0]);
+        assert_eq!(report.rejected_rows, 1);
+        let report = sparse_adam_step(
+            &mut st,
+            &[1],
+            &[-1.0, 0.0, 0.0],
+            &[f32::MAX, 0.0, 0.0],
+            &CONFIG,
+            None,
+        )
+        .unwrap();
+        assert_eq!(report.non_finite_rows, 1); // f32::MAX + f32::MAX overflows
+    }
+
+    #[test]
+    fn a_journal_of_another_table_is_refused() {
+        let (mut p, mut m, mut v, mut s) = state(4, 2);
+        let mut st = SparseAdamState {
+            param: &mut p,
+            exp_avg: &mut m,
+            exp_avg_sq: &mut v,
+            steps: &mut s,
+            channels: 2,
+        };
+        let mut journal = RowJournal::new(5, 2);
+        let err = sparse_adam_step(
+            &mut st,
+            &[1],
+            &[1.0, 1.0],
+            &[0.1, 0.1],
+            &CONFIG,
+            Some(&mut journal),
+        )
+        .unwrap_err();
+        assert!(matches!(err, Error::Shape { arg: "journal", .. }));
     }
 }
