@@ -94,7 +94,7 @@ def evaluate_frames(
         lpips=_mean(per["lpips"]),
         per_frame_psnr=tuple(per["psnr"]),
     )
-    if refine is None or refine.steps == 0:
+    if refine is None or refine.total_steps == 0:
         return scores
     refined = refine_params_of(avatar, frames, refine, occlusion_aware, progress, params)
     after = _score(

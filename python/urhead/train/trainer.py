@@ -179,7 +179,7 @@ class Trainer:
             left_out.append("Gaussian offset map E")
         if not c.shading:
             left_out.append("pose-driven shading maps A")
-        if c.refine_steps == 0:
+        if c.refine_steps + c.refine_full_steps == 0:
             left_out.append("test-time refinement of held-out FLAME rows")
         log.info(
             "fit: %d train / %d held-out frames, maps %d² × %d channels (SH %d), %d Gaussians",
@@ -264,6 +264,7 @@ class Trainer:
             laplacian=avatar.tables()["laplacian"],
             use_normals=self.use_normals,
             lambda_offset=c.lambda_offset,
+            lambda_alpha=c.lambda_alpha,
         )
         loss.total.backward()
         avatar.maps.grad = gather.gradient()
@@ -356,9 +357,11 @@ class Trainer:
         avatar.maps.requires_grad_(False)
         avatar.frame_params.requires_grad_(False)
         held_out = list(self.held_out)
-        refine = RefineSettings(steps=c.refine_steps)
+        refine = RefineSettings(steps=c.refine_steps, full_steps=c.refine_full_steps)
         tick = time.perf_counter()
-        bar = _progress(len(held_out), 0, self.progress and c.refine_steps > 0, "refine held-out")
+        bar = _progress(
+            len(held_out), 0, self.progress and refine.total_steps > 0, "refine held-out"
+        )
         with bar:
             scores = evaluate_frames(
                 avatar,
@@ -382,11 +385,12 @@ class Trainer:
             "iterations": c.iterations,
             "held_out_frames": len(held_out),
             "refine_steps": c.refine_steps,
+            "refine_full_steps": c.refine_full_steps,
             "metric_region": "psnr, ssim: inside the foreground mask; *_full: the whole "
             "image; on the subject's background",
             "flame_parameters": "psnr*: held-out frames with their tracked FLAME parameters; "
-            "*_refined: after refine_steps Adam steps on each held-out frame's FLAME row "
-            "against the frozen avatar",
+            "*_refined: after refine_steps Adam steps at <= 256 px, then refine_full_steps "
+            "at full size, on each held-out frame's FLAME row against the frozen avatar",
             "background": avatar.background.tolist(),
         }
         recorded = {
