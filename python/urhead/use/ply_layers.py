@@ -15,11 +15,12 @@ avatar:
 - Colour: the maps' SH coefficients at the surfel's UV point, rotated into the world frame
   like the Gaussians' (the mesh branch evaluates its colour in the same rest frame), so
   view-dependent colour is kept.
-- Position: moved ``INSET_PIXELS`` inward along the posed normal the Gaussians are lifted
-  along. Gaussian tails and the renderer's 0.3 px² screen dilation grow a surfel
-  silhouette by about a pixel; the inset cancels that, and places the surface behind the
-  Gaussians that sit on it (their offsets are mostly within a millimetre of it), so depth
-  sorting composites them over it as the avatar does.
+- Position: moved ``INSET`` spacings inward along the posed normal the Gaussians are
+  lifted along. Gaussian tails and the renderer's 0.3 px² screen dilation grow a surfel
+  silhouette by about a pixel at the default spacing; the inset (1 px there) cancels
+  that, and places the surface behind the Gaussians that sit on it (their offsets are
+  mostly within a millimetre of it), so depth sorting composites them over it as the
+  avatar does.
 
 The constants were chosen by measurement on a 512² fit (README "Export").
 """
@@ -42,8 +43,8 @@ DEFAULT_SPACING_PIXELS = 3.0
 """Surfel spacing at the frame's camera; see README "Export" for size against PSNR."""
 SIGMA_GAIN = 1.2
 """In-plane standard deviations relative to the sub-triangle's own (uniform) ones."""
-INSET_PIXELS = 1.0
-"""Inward move of the surfels along the normal, in pixels at the head's depth."""
+INSET = 1 / 3
+"""Inward move of the surfels along the normal, in units of the spacing."""
 THIN = 1e-2
 """Thickness of a surfel relative to its smaller in-plane standard deviation."""
 SURFEL_OPACITY_LOGIT = math.log(0.999 / 0.001)
@@ -100,7 +101,7 @@ def mesh_surfels(
         rows = texture(avatar.maps.detach(), uv)
         samples = avatar.layout.split(rows)
         inward = -_unit((frames * samples.normal[:, None, :]).sum(-1).double())
-        means = centres + INSET_PIXELS * metres_per_pixel * inward
+        means = centres + INSET * spacing_pixels * metres_per_pixel * inward
         edges = _edges(corners[face]) / cuts[face].double()[:, None, None]
         axes, log_scales = _triangle_gaussian(edges)
     return {
