@@ -54,7 +54,8 @@ def add_parser(subparsers) -> None:
         "export",
         help="export an avatar as 3DGS PLY files, textured meshes or UV maps",
         description="Export a fitted avatar: per-frame standard 3DGS PLY files in world "
-        "space (--ply), per-frame textured OBJ meshes (--mesh) and binary glTF (--glb), "
+        "space holding the Gaussians and the mesh as surface Gaussians (--ply), "
+        "per-frame textured OBJ meshes (--mesh) and binary glTF (--glb), "
         "the UV maps as compressed "
         "float EXR with PNG previews (--maps). Each output folder is written whole, then renamed "
         "into place (an existing one is replaced).",
