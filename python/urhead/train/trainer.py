@@ -37,6 +37,7 @@ from urhead.train.checkpoint import (
 )
 from urhead.train.loss import training_loss, uv_error_samples
 from urhead.train.plots import plot_psnr_vs_time
+from urhead.use.stlpips import load_stlpips
 
 log = logging.getLogger("urhead.fit")
 
@@ -359,6 +360,7 @@ class Trainer:
         held_out = list(self.held_out)
         refine = RefineSettings(steps=c.refine_steps, full_steps=c.refine_full_steps)
         tick = time.perf_counter()
+        stlpips, stlpips_note = load_stlpips()
         bar = _progress(
             len(held_out), 0, self.progress and refine.total_steps > 0, "refine held-out"
         )
@@ -367,6 +369,7 @@ class Trainer:
                 avatar,
                 held_out,
                 occlusion_aware=c.occlusion_aware,
+                stlpips=stlpips,
                 refine=refine,
                 progress=lambda: bar.update(1),
             )
@@ -378,6 +381,7 @@ class Trainer:
             "ssim": scores.ssim,
             "ssim_refined": scores.ssim_refined,
             "lpips": scores.lpips,
+            "stlpips_alex": scores.stlpips_alex,
             "psnr_mesh_only": scores.psnr_mesh_only,
             "num_gaussians": avatar.num_gaussians,
             "seconds": round(seconds, 2),
@@ -393,6 +397,8 @@ class Trainer:
             "at full size, on each held-out frame's FLAME row against the frozen avatar",
             "background": avatar.background.tolist(),
         }
+        if stlpips_note is not None:
+            metrics["stlpips_skipped"] = stlpips_note
         recorded = {
             "subject": str(Path(self.subject.root).resolve()),
             "camera": self.subject.train.records[0].camera.to_dict(),
