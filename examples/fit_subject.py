@@ -61,7 +61,7 @@ def main() -> None:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     with logging_redirect_tqdm():  # log lines above the progress bar, not through it
         result = Trainer(subject, procedural_head(0), config, args.out).run(resume=args.resume)
-    write_test_strip(result.avatar, subject, args.out / "test_frames.png", config.refine_steps)
+    write_test_strip(result.avatar, subject, args.out / "test_frames.png", config)
     metrics = dict(result.metrics, total_seconds=round(time.perf_counter() - start, 1))
     truth = subject_dir / "synthetic_ground_truth.npz"
     if truth.is_file():
@@ -79,7 +79,7 @@ def held_out(subject):
     return subject.test if len(subject.test) else subject.val
 
 
-def write_test_strip(avatar, subject, path: Path, refine_steps: int, count: int = 4) -> None:
+def write_test_strip(avatar, subject, path: Path, config: FitConfig, count: int = 4) -> None:
     """Rows of held-out frames, labelled: ground truth | avatar (tracked FLAME) | avatar
     (refined FLAME) | mesh branch (tracked) | error ×4 (refined)."""
     import cv2
@@ -88,7 +88,7 @@ def write_test_strip(avatar, subject, path: Path, refine_steps: int, count: int 
 
     frames = held_out(subject)
     picks = np.linspace(0, len(frames) - 1, count).round().astype(int)
-    settings = RefineSettings(steps=refine_steps)
+    settings = RefineSettings(steps=config.refine_steps, full_steps=config.refine_full_steps)
     rows = []
     for i in picks:
         frame = frames[int(i)]

@@ -22,10 +22,12 @@ from urhead.cli import main
 from urhead.config import FitConfig
 from urhead.data import load_subject
 from urhead.data.synthetic import SynthConfig, synthesize
+from urhead.eval.metrics import frame_params
 from urhead.head import procedural_head
 from urhead.model import load_avatar
 from urhead.train.checkpoint import find_checkpoint, save_checkpoint
-from urhead.train.trainer import Trainer, frame_order, uv_lr_factor
+from urhead.train.trainer import Trainer, eval_subset, frame_order, uv_lr_factor
+from urhead.use.stlpips import load_stlpips
 
 TINY = SynthConfig(
     frames=10, resolution=64, seed=5, difficulty="easy", samples_per_side=1, edge_samples_per_side=1
@@ -95,6 +97,38 @@ def test_fit_learns_and_writes_its_outputs(fitted):
     assert avatar.num_gaussians == metrics["num_gaussians"]
     assert torch.equal(avatar.maps, fitted.avatar.maps.detach())
     assert json.loads((out / "avatar" / "avatar.json").read_text())["config"] == asdict(SMALL_FIT)
+
+
+def test_metrics_carry_stlpips_of_the_held_out_frames(fitted, subject_dir):
+    """``stlpips_alex`` in metrics.json is ST-LPIPS-alex inside the mask over the
+    ``eval_frames`` held-out frames spread evenly over the sequence, as ``urhead eval``
+    scores a frame: recomputed here from the saved avatar."""
+    metrics = json.loads((fitted.out / "metrics.json").read_text())
+    metric, note = load_stlpips()
+    assert metric is not None, note
+    avatar = load_avatar(fitted.out / "avatar")
+    subject = load_subject(subject_dir)
+    held_out = list(subject.test if len(subject.test) else subject.val)
+    picked = [held_out[i] for i in eval_subset(held_out, SMALL_FIT.eval_frames)]
+    assert metrics["stlpips_frames"] == len(picked)
+    scores = []
+    with torch.no_grad():
+        for frame in picked:
+            image = avatar.render(frame_params(avatar, frame), frame.camera).image.clamp(0, 1)
+            scores.append(metric(image, frame.image, frame.mask))
+    assert metrics["stlpips_alex"] == pytest.approx(sum(scores) / len(scores), rel=1e-5)
+    assert 0 < metrics["stlpips_alex"] < 1
+    assert "stlpips_skipped" not in metrics
+
+
+def test_metrics_record_why_stlpips_is_missing(subject_dir, head, tmp_path, monkeypatch):
+    note = "ST-LPIPS skipped: the stlpips-pytorch package (its weights) is missing"
+    monkeypatch.setattr("urhead.train.trainer.load_stlpips", lambda: (None, note))
+    config = replace(SMALL_FIT, iterations=2, refine_steps=0, refine_full_steps=0)
+    Trainer(load_subject(subject_dir), head, config, tmp_path, progress=False).run()
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["stlpips_alex"] is None
+    assert metrics["stlpips_skipped"] == note
 
 
 def test_sampling_respects_cap_and_budget(fitted):

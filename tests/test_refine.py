@@ -82,8 +82,12 @@ def test_refinement_never_ends_worse_and_zero_steps_is_identity(head):
     wild = RefineSettings(steps=3, lr_expression=50.0, lr_pose=5.0, lr_translation=5.0)
     out = refine_params(avatar, frame, truth, wild)
     assert all(torch.equal(a, b) for a, b in zip(out, truth, strict=True))
-    same = refine_params(avatar, frame, truth, RefineSettings(steps=0))
+    same = refine_params(avatar, frame, truth, RefineSettings(steps=0, full_steps=0))
     assert same is truth
+    plain = evaluate_frames(
+        avatar, [frame], params=[truth], refine=RefineSettings(steps=0, full_steps=0)
+    )
+    assert plain.psnr_refined is None
 
 
 def test_refinement_refuses_a_trainable_avatar(head):
@@ -187,3 +191,27 @@ def test_exact_flame_scores_reads_the_ground_truth_file(head, tmp_path):
     direct = evaluate_frames(avatar, [frame], params=[truth], mesh_only=False)
     assert exact.psnr == direct.psnr and exact.psnr_full == direct.psnr_full
     assert exact.psnr_full > 40  # the frame was rendered from exactly these parameters
+
+
+def test_full_size_steps_finish_what_the_coarse_steps_leave(head):
+    """A pose found on a 4× reduced frame leaves sub-pixel misalignment at full size;
+    steps at full size remove more of it than the same number of extra coarse steps."""
+    from urhead.losses import psnr
+
+    avatar = textured_avatar(head, resolution=64, count=400)
+    cam = camera(128)
+    truth = _truth(avatar)
+    frame = _frame(avatar, truth, 100, cam)
+    start = _perturbed(truth)
+
+    def score(settings):
+        p = refine_params(avatar, frame, start, settings)
+        with torch.no_grad():
+            return float(psnr(avatar.render(p, cam).image.clamp(0, 1), frame.image))
+
+    coarse = score(RefineSettings(steps=40, full_steps=0, max_side=32))
+    more_coarse = score(RefineSettings(steps=50, full_steps=0, max_side=32))
+    fine = score(RefineSettings(steps=40, full_steps=10, max_side=32))
+    assert fine > max(coarse, more_coarse) + 0.5
+    with pytest.raises(ValueError, match="full_steps"):
+        RefineSettings(full_steps=-1)

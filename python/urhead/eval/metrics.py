@@ -3,7 +3,9 @@ on the subject's background: PSNR inside the head mask (``psnr``) and over the f
 (``psnr_full``), SSIM inside the mask, PSNR of the mesh branch alone; the same PSNRs after
 test-time refinement of the held-out frames' FLAME rows (``psnr_refined``,
 ``psnr_refined_full``) when asked for. LPIPS needs network weights that cannot be
-downloaded here; it is None unless a caller supplies a scorer."""
+downloaded here; it is None unless a caller supplies a scorer. ST-LPIPS-alex
+(``stlpips_alex``, :mod:`urhead.use.stlpips`) likewise, inside the mask, as ``urhead eval``
+scores it."""
 
 from __future__ import annotations
 
@@ -30,6 +32,7 @@ class FrameScores:
     psnr_refined: float | None = None
     psnr_refined_full: float | None = None
     ssim_refined: float | None = None
+    stlpips_alex: float | None = None
 
 
 def frame_params(avatar: Avatar, frame) -> FlameParams:
@@ -45,8 +48,8 @@ def _mean(xs):
 
 
 @torch.no_grad()
-def _score(avatar, frames, params, *, occlusion_aware, mesh_only, lpips):
-    per = {"psnr": [], "psnr_full": [], "ssim": [], "mesh": [], "lpips": []}
+def _score(avatar, frames, params, *, occlusion_aware, mesh_only, lpips, stlpips=None):
+    per = {"psnr": [], "psnr_full": [], "ssim": [], "mesh": [], "lpips": [], "stlpips": []}
     for frame, p in zip(frames, params, strict=True):
         out = avatar.render(p, frame.camera, occlusion_aware=occlusion_aware)
         image = out.image.clamp(0, 1)
@@ -58,6 +61,8 @@ def _score(avatar, frames, params, *, occlusion_aware, mesh_only, lpips):
             per["mesh"].append(float(psnr(mesh, frame.image, frame.mask)))
         if lpips is not None:
             per["lpips"].append(float(lpips(image, frame.image, frame.mask)))
+        if stlpips is not None:
+            per["stlpips"].append(float(stlpips(image, frame.image, frame.mask)))
     return per
 
 
@@ -68,12 +73,14 @@ def evaluate_frames(
     occlusion_aware: bool = True,
     mesh_only: bool = True,
     lpips: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], float] | None = None,
+    stlpips: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], float] | None = None,
     refine: RefineSettings | None = None,
     progress=None,
     params: Sequence[FlameParams] | None = None,
 ) -> FrameScores:
     """Scores ``frames`` (dataset frames with image, mask, camera, flame) with ``params``
-    (default: :func:`frame_params` of each); with ``refine`` (steps > 0) also after refining
+    (default: :func:`frame_params` of each); ``lpips`` and ``stlpips`` score (image, truth,
+    mask) when given; with ``refine`` (steps > 0) also after refining
     each held-out frame's FLAME row (training frames keep their trained rows).
     ``progress`` is called once per refined frame."""
     if len(frames) == 0:
@@ -84,7 +91,13 @@ def evaluate_frames(
     elif len(params) != len(frames):
         raise ValueError(f"{len(params)} parameter sets for {len(frames)} frames")
     per = _score(
-        avatar, frames, params, occlusion_aware=occlusion_aware, mesh_only=mesh_only, lpips=lpips
+        avatar,
+        frames,
+        params,
+        occlusion_aware=occlusion_aware,
+        mesh_only=mesh_only,
+        lpips=lpips,
+        stlpips=stlpips,
     )
     scores = FrameScores(
         psnr=_mean(per["psnr"]),
@@ -93,8 +106,9 @@ def evaluate_frames(
         psnr_mesh_only=_mean(per["mesh"]),
         lpips=_mean(per["lpips"]),
         per_frame_psnr=tuple(per["psnr"]),
+        stlpips_alex=_mean(per["stlpips"]),
     )
-    if refine is None or refine.steps == 0:
+    if refine is None or refine.total_steps == 0:
         return scores
     refined = refine_params_of(avatar, frames, refine, occlusion_aware, progress, params)
     after = _score(

@@ -30,8 +30,8 @@ from urhead.model.avatar import Avatar, FlameParams
 class RefineSettings:
     """How a held-out frame's FLAME row is refined."""
 
-    steps: int = 40
-    """Adam steps per frame (0 = no refinement)."""
+    steps: int = 20
+    """Adam steps per frame at the reduced size (``max_side``)."""
     lr_expression: float = 1e-2
     lr_pose: float = 1e-3
     """radians per step, about."""
@@ -42,11 +42,20 @@ class RefineSettings:
     """Start a frame from the previous (consecutive) frame's correction."""
     max_side: int = 256
     """Refine on the frame resampled (area average) so its longer side is at most this:
-    a pose is found as well at 256² as at 512², in a quarter of the time."""
+    the coarse pose is found as well at 256² as at 512², in a quarter of the time."""
+    full_steps: int = 10
+    """Adam steps at the frame's own size after the coarse ones: the last fraction of a
+    pixel of alignment only shows at full resolution."""
+
+    @property
+    def total_steps(self) -> int:
+        """Steps per frame over both sizes (0 = no refinement)."""
+        return self.steps + self.full_steps
 
     def __post_init__(self):
-        if self.steps < 0:
-            raise ValueError(f"refine steps must be >= 0, got {self.steps}")
+        for name in ("steps", "full_steps"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"refine {name} must be >= 0, got {getattr(self, name)}")
         if self.max_side < 16:
             raise ValueError(f"refine max_side must be >= 16, got {self.max_side}")
         for name in ("lr_expression", "lr_pose", "lr_translation", "lambda_ssim"):
@@ -63,14 +72,34 @@ def refine_params(
     *,
     occlusion_aware: bool = True,
 ) -> FlameParams:
-    """``start`` refined against ``frame`` (image, mask, camera) with the avatar frozen.
+    """``start`` refined against ``frame`` (image, mask, camera) with the avatar frozen:
+    ``settings.steps`` at the reduced size, then ``settings.full_steps`` at full size.
     Returns detached parameters; the avatar's tensors are not modified."""
-    if settings.steps == 0:
-        return start
     if avatar.maps.requires_grad:
         # A backward through the maps would build a dense gradient and leave it in
         # maps.grad; refinement is for a frozen avatar.
         raise ValueError("refine_params needs a frozen avatar (maps.requires_grad is set)")
+    coarse = _adam_descent(
+        avatar,
+        *_resampled(frame, settings.max_side),
+        start,
+        settings.steps,
+        settings,
+        occlusion_aware,
+    )
+    full_size = max(frame.image.shape[:2]) <= settings.max_side
+    if full_size:
+        return coarse
+    return _adam_descent(
+        avatar, frame.camera, frame.image, coarse, settings.full_steps, settings, occlusion_aware
+    )
+
+
+def _adam_descent(avatar, camera, target, start, steps, settings, occlusion_aware):
+    """``start`` after ``steps`` Adam steps on the photometric objective at ``camera``; the
+    best scored state (never worse than ``start``)."""
+    if steps == 0:
+        return start
     expr, pose, transl = (p.detach().clone().requires_grad_(True) for p in start)
     optimizer = torch.optim.Adam(
         [
@@ -79,10 +108,9 @@ def refine_params(
             {"params": [transl], "lr": settings.lr_translation},
         ]
     )
-    camera, target = _resampled(frame, settings.max_side)
     w = settings.lambda_ssim
     best, best_loss = start, float("inf")
-    for _ in range(settings.steps):
+    for _ in range(steps):
         optimizer.zero_grad(set_to_none=True)
         params = FlameParams(expr, pose, transl)
         image = avatar.render(params, camera, occlusion_aware=occlusion_aware).image

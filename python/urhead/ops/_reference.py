@@ -294,8 +294,8 @@ def edge_topology(faces) -> list[list[int]]:
     for slots in by_edge.values():
         if len(slots) == 2:
             (i, k), (j, m) = slots
-            topo[i][k] = f[j][m]
-            topo[j][m] = f[i][k]
+            topo[i][k] = j
+            topo[j][m] = i
     return topo
 
 
@@ -317,8 +317,10 @@ def antialias(color, raster, verts, faces, camera):
         if topo[t][e] < 0:
             return True
         a, b, own = cam_d[f[t][(e + 1) % 3]], cam_d[f[t][(e + 2) % 3]], cam_d[f[t][e]]
+        across = f[topo[t][e]]
+        other = next((v for v in across if v not in f[t]), across[0])
         n = torch.linalg.cross(a, b)
-        return not float(n @ own) * float(n @ cam_d[topo[t][e]]) < 0
+        return not float(n @ own) * float(n @ cam_d[other]) < 0
 
     tri_id = raster.tri_id.tolist()
     depth = raster.depth.tolist()
@@ -340,31 +342,39 @@ def antialias(color, raster, verts, faces, camera):
                     d0, d1 = depth[y][x], depth[y1][x1]
                     first = d0 < d1 or (d0 == d1 and t0 < t1)
                 t = t0 if first else t1
-                if any(float(cam_d[v, 2]) <= camera.near for v in f[t]):
-                    continue
                 cx, cy = (x, y) if first else (x1, y1)
-                rel = proj[f[t]] - torch.tensor([cx + 0.5, cy + 0.5], dtype=proj.dtype)
-                if vertical:
-                    rel = rel.flip(-1)
                 direction = 1.0 if first else -1.0
-                rd = rel.detach().double().tolist()
-                best = None
-                for e in range(3):
-                    a, b = rd[(e + 1) % 3], rd[(e + 2) % 3]
-                    if (a[1] < 0) == (b[1] < 0):
-                        continue
-                    crossing = direction * (a[0] * b[1] - b[0] * a[1]) / (b[1] - a[1])
-                    if best is None or crossing > best[1]:
-                        best = (e, crossing)
-                if best is None:
+                found = None
+                # Follow the segment through non-silhouette edges (the kernel's MAX_WALK).
+                for _ in range(16):
+                    if any(float(cam_d[v, 2]) <= camera.near for v in f[t]):
+                        break
+                    rel = proj[f[t]] - torch.tensor([cx + 0.5, cy + 0.5], dtype=proj.dtype)
+                    if vertical:
+                        rel = rel.flip(-1)
+                    rd = rel.detach().double().tolist()
+                    best = None
+                    for e in range(3):
+                        a, b = rd[(e + 1) % 3], rd[(e + 2) % 3]
+                        if (a[1] < 0) == (b[1] < 0):
+                            continue
+                        crossing = direction * (a[0] * b[1] - b[0] * a[1]) / (b[1] - a[1])
+                        if best is None or crossing > best[1]:
+                            best = (e, crossing)
+                    if best is None:
+                        break
+                    e, d = best
+                    if silhouette(t, e):
+                        found = (t, e, d, rel, rd)
+                        break
+                    if topo[t][e] < 0 or d >= 1 + 1 / 16:
+                        break
+                    t = topo[t][e]
+                if found is None:
                     continue
-                e, d = best
+                t, e, d, rel, rd = found
                 a, b = rd[(e + 1) % 3], rd[(e + 2) % 3]
-                if not (
-                    silhouette(t, e)
-                    and abs(b[1] - a[1]) >= abs(b[0] - a[0])
-                    and -1 / 16 < d < 1 + 1 / 16
-                ):
+                if not (abs(b[1] - a[1]) >= abs(b[0] - a[0]) and -1 / 16 < d < 1 + 1 / 16):
                     continue
                 alpha_value = direction * (0.5 - min(max(d, 0.0), 1.0))
                 if alpha_value == 0:

@@ -29,9 +29,9 @@ def antialias_topology(faces: torch.Tensor, num_verts: int | None = None) -> tor
         num_verts: number of vertices (default ``faces.max() + 1``).
 
     Returns:
-        (F, 3) int32: for face f and edge k (opposite vertex k), the third vertex of the
-        other face sharing that edge; -1 for boundary, non-manifold (> 2 faces) edges and
-        degenerate faces — such edges always count as silhouette candidates.
+        (F, 3) int32: for face f and edge k (opposite vertex k), the other face sharing
+        that edge; -1 for boundary, non-manifold (> 2 faces) edges and degenerate faces —
+        such edges always count as silhouette candidates.
     """
     faces = index_tensor("faces", faces)
     check_shape("faces", faces, 2, 3, "(F, 3) int32")
@@ -104,11 +104,14 @@ def antialias(
     Returns:
         (H, W, C) the antialiased image.
 
-    For each pair of neighbouring pixels showing different triangles, the nearer one's
-    silhouette edge crossing the segment between the two pixel centres (if any) blends the
-    two colours in proportion to where it crosses (nvdiffrast's analytic antialiasing:
-    1/16 px crossing tolerance, 1e-3 px guard in the gradient, no position gradient where
-    the blend weight saturates at 0.5). A silhouette edge is open, or its neighbouring
+    For each pair of neighbouring pixels showing different triangles, the silhouette edge
+    crossing the segment between the two pixel centres (if any) blends the two colours in
+    proportion to where it crosses (nvdiffrast's analytic antialiasing: 1/16 px crossing
+    tolerance, 1e-3 px guard in the gradient, no position gradient where the blend weight
+    saturates at 0.5). Unlike nvdiffrast, the edge is searched for beyond the nearer
+    pixel's own triangle: the segment is followed through up to 16 triangles across
+    non-silhouette edges, since near a silhouette triangles are seen edge-on as slivers and
+    the first one rarely holds it. A silhouette edge is open, or its neighbouring
     face lies on the same side of it as seen from the camera. Triangles with a vertex at
     or behind the near plane are not antialiased. Gradients flow to ``color`` and ``verts``.
     """

@@ -44,6 +44,7 @@ def training_loss(
     laplacian: torch.Tensor,
     use_normals: bool,
     lambda_offset: float = 0.0,
+    lambda_alpha: float = 0.0,
 ) -> LossTerms:
     """The loss of one rendered training frame (a dataset :class:`Frame`)."""
     target = frame.image
@@ -68,6 +69,10 @@ def training_loss(
         lap = laplacian_loss(render.mesh.offsets, laplacian)
         total = total + lambda_laplacian * lap
         terms["laplacian"] = float(lap.detach())
+    if lambda_alpha > 0:
+        sil = silhouette_loss(render, frame)
+        total = total + lambda_alpha * sil
+        terms["alpha"] = float(sil.detach())
     offset = render.gaussians.lift.offset if render.gaussians is not None else None
     if offset is not None and lambda_offset > 0 and offset.numel():
         # In units of (100 mm)²: a hair shell of ~1 cm costs 1 % of λ per Gaussian.
@@ -75,6 +80,19 @@ def training_loss(
         total = total + lambda_offset * reg
         terms["offset"] = float(reg.detach())
     return LossTerms(total, terms)
+
+
+def coverage(render: Render) -> torch.Tensor:
+    """(H, W) opacity of the composite: Gaussians over the mesh, 1 − T·(1 − α_mesh)."""
+    if render.gaussians is None:
+        return render.mesh.alpha
+    return 1 - render.gaussians.transmittance * (1 - render.mesh.alpha)
+
+
+def silhouette_loss(render: Render, frame) -> torch.Tensor:
+    """Mean |coverage − mask| over the image: the matte's own antialiased edge is the
+    target, so the silhouette is fitted directly rather than only through colour."""
+    return (coverage(render) - frame.mask).abs().mean()
 
 
 def normal_loss(render: Render, frame) -> torch.Tensor:

@@ -39,6 +39,7 @@ from urhead.train.guard import StepGuard
 from urhead.train.loss import training_loss, uv_error_samples
 from urhead.train.plots import plot_psnr_vs_time
 from urhead.train.units import check_metres
+from urhead.use.stlpips import load_stlpips
 
 log = logging.getLogger("urhead.fit")
 
@@ -183,7 +184,7 @@ class Trainer:
             left_out.append("Gaussian offset map E")
         if not c.shading:
             left_out.append("pose-driven shading maps A")
-        if c.refine_steps == 0:
+        if c.refine_steps + c.refine_full_steps == 0:
             left_out.append("test-time refinement of held-out FLAME rows")
         log.info(
             "fit: %d train / %d held-out frames, maps %d² × %d channels (SH %d), %d Gaussians",
@@ -271,6 +272,7 @@ class Trainer:
             laplacian=avatar.tables()["laplacian"],
             use_normals=self.use_normals,
             lambda_offset=c.lambda_offset,
+            lambda_alpha=c.lambda_alpha,
         )
         loss.total.backward()
         avatar.maps.grad = gather.gradient()
@@ -367,9 +369,12 @@ class Trainer:
         avatar.maps.requires_grad_(False)
         avatar.frame_params.requires_grad_(False)
         held_out = list(self.held_out)
-        refine = RefineSettings(steps=c.refine_steps)
+        refine = RefineSettings(steps=c.refine_steps, full_steps=c.refine_full_steps)
         tick = time.perf_counter()
-        bar = _progress(len(held_out), 0, self.progress and c.refine_steps > 0, "refine held-out")
+        stlpips, stlpips_note = load_stlpips()
+        bar = _progress(
+            len(held_out), 0, self.progress and refine.total_steps > 0, "refine held-out"
+        )
         with bar:
             scores = evaluate_frames(
                 avatar,
@@ -378,6 +383,21 @@ class Trainer:
                 refine=refine,
                 progress=lambda: bar.update(1),
             )
+        # ST-LPIPS costs ~1.3 s of CPU per 512² frame (its first convolution runs at full
+        # size), more than the rest of the evaluation: the fit scores it on the eval_frames
+        # spread evenly over the held-out frames; `urhead eval` scores every frame.
+        perceptual_frames = [held_out[i] for i in eval_subset(held_out, c.eval_frames)]
+        perceptual = (
+            evaluate_frames(
+                avatar,
+                perceptual_frames,
+                occlusion_aware=c.occlusion_aware,
+                mesh_only=False,
+                stlpips=stlpips,
+            ).stlpips_alex
+            if stlpips is not None and perceptual_frames
+            else None
+        )
         metrics = {
             "psnr": scores.psnr,
             "psnr_full": scores.psnr_full,
@@ -386,6 +406,8 @@ class Trainer:
             "ssim": scores.ssim,
             "ssim_refined": scores.ssim_refined,
             "lpips": scores.lpips,
+            "stlpips_alex": perceptual,
+            "stlpips_frames": len(perceptual_frames) if perceptual is not None else 0,
             "psnr_mesh_only": scores.psnr_mesh_only,
             "num_gaussians": avatar.num_gaussians,
             "seconds": round(seconds, 2),
@@ -393,14 +415,17 @@ class Trainer:
             "iterations": c.iterations,
             "held_out_frames": len(held_out),
             "refine_steps": c.refine_steps,
+            "refine_full_steps": c.refine_full_steps,
             "rejected_steps": [asdict(e) for e in events],
             "metric_region": "psnr, ssim: inside the foreground mask; *_full: the whole "
             "image; on the subject's background",
             "flame_parameters": "psnr*: held-out frames with their tracked FLAME parameters; "
-            "*_refined: after refine_steps Adam steps on each held-out frame's FLAME row "
-            "against the frozen avatar",
+            "*_refined: after refine_steps Adam steps at <= 256 px, then refine_full_steps "
+            "at full size, on each held-out frame's FLAME row against the frozen avatar",
             "background": avatar.background.tolist(),
         }
+        if stlpips_note is not None:
+            metrics["stlpips_skipped"] = stlpips_note
         recorded = {
             "subject": str(Path(self.subject.root).resolve()),
             "camera": self.subject.train.records[0].camera.to_dict(),

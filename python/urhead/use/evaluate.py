@@ -102,7 +102,13 @@ def add_parser(subparsers) -> None:
         "--refine-steps",
         type=int,
         default=RefineSettings().steps,
-        help="Adam steps per frame for --refine-flame (default: %(default)s)",
+        help="Adam steps per frame at <= 256 px for --refine-flame (default: %(default)s)",
+    )
+    p.add_argument(
+        "--refine-full-steps",
+        type=int,
+        default=RefineSettings().full_steps,
+        help="Adam steps per frame at full size after --refine-steps (default: %(default)s)",
     )
     add_background_option(p)
     p.set_defaults(run=run)
@@ -131,9 +137,14 @@ def run(args: argparse.Namespace) -> int:
         notes += [note] if note else []
     for note in notes:
         print(note, file=report)
-    if args.refine_steps < 0:
-        raise SystemExit(f"--refine-steps must be >= 0, got {args.refine_steps}")
-    refine = RefineSettings(steps=args.refine_steps) if args.refine_flame else None
+    for name in ("refine_steps", "refine_full_steps"):
+        if getattr(args, name) < 0:
+            raise SystemExit(f"--{name.replace('_', '-')} must be >= 0, got {getattr(args, name)}")
+    refine = (
+        RefineSettings(steps=args.refine_steps, full_steps=args.refine_full_steps)
+        if args.refine_flame
+        else None
+    )
     result = evaluate_avatar(
         opened.avatar,
         frames,
@@ -183,7 +194,7 @@ def evaluate_avatar(
         stlpips=stlpips,
         progress=progress,
     )
-    if refine is not None and refine.steps > 0:
+    if refine is not None and refine.total_steps > 0:
         with progress_bar(len(frames), "refine", enabled=progress) as bar:
             params = refine_params_of(
                 avatar, frames, refine, occlusion_aware, progress=lambda: bar.update(1)
@@ -196,6 +207,7 @@ def evaluate_avatar(
             psnr_refined_full=after.psnr_full,
             ssim_refined=after.ssim,
             refine_steps=refine.steps,
+            refine_full_steps=refine.full_steps,
         )
         result["per_frame"]["psnr_refined"] = list(after.per_frame_psnr)
     return result

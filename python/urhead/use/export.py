@@ -1,11 +1,13 @@
 """``urhead export AVATAR``: per-frame 3DGS PLY files, textured OBJ meshes and the UV maps.
 
-- ``--ply DIR``: ``DIR/{timestep:05d}.ply`` per frame, the Gaussian layer in world space
-  (:mod:`urhead.use.ply`). The avatar evaluates SH colours in each Gaussian's rest frame;
-  the export rotates the coefficients into the world frame (:mod:`urhead.use.sh_rotation`)
-  with the nearest proper rotation to the Gaussian's blended skinning rotation. Where a
-  face's vertices share one joint rotation (everywhere but the blend seams of neck, jaw
-  and eyes) that rotation is exact, so the file renders the avatar's Gaussian layer.
+- ``--ply DIR``: ``DIR/{timestep:05d}.ply`` per frame in world space (:mod:`urhead.use.ply`):
+  the Gaussian layer, then the mesh as flat opaque surface Gaussians
+  (:mod:`urhead.use.ply_layers`; ``--gaussians-only`` leaves them out). The avatar
+  evaluates SH colours in each sample's rest frame; the export rotates the coefficients
+  into the world frame (:mod:`urhead.use.sh_rotation`) with the nearest proper rotation to
+  the blended skinning rotation. Where a face's vertices share one joint rotation
+  (everywhere but the blend seams of neck, jaw and eyes) that rotation is exact, so
+  ``--gaussians-only`` renders the avatar's Gaussian layer.
 - ``--mesh DIR``: ``DIR/{timestep:05d}.obj`` per frame (displaced posed mesh with the
   FLAME UV layout), one ``material.mtl`` and ``texture.png`` (the colour map's DC term).
 - ``--glb DIR``: ``DIR/{timestep:05d}.glb`` per frame, binary glTF of the same mesh with
@@ -31,7 +33,6 @@ import torch
 from urhead._progress import tracked
 from urhead.model import Avatar
 from urhead.model.io import write_directory_atomically
-from urhead.ops import texture
 from urhead.sh import SH_C0
 from urhead.use.common import (
     OpenedAvatar,
@@ -45,7 +46,7 @@ from urhead.use.common import (
 from urhead.use.exr import image_channels, write_exr
 from urhead.use.glb import glb_bytes, seam_split
 from urhead.use.ply import write_gaussian_ply
-from urhead.use.sh_rotation import nearest_rotation, rotate_sh
+from urhead.use.ply_layers import DEFAULT_SPACING_PIXELS, mesh_surfels, world_gaussians
 
 
 def add_parser(subparsers) -> None:
@@ -53,7 +54,8 @@ def add_parser(subparsers) -> None:
         "export",
         help="export an avatar as 3DGS PLY files, textured meshes or UV maps",
         description="Export a fitted avatar: per-frame standard 3DGS PLY files in world "
-        "space (--ply), per-frame textured OBJ meshes (--mesh) and binary glTF (--glb), "
+        "space holding the Gaussians and the mesh as surface Gaussians (--ply), "
+        "per-frame textured OBJ meshes (--mesh) and binary glTF (--glb), "
         "the UV maps as compressed "
         "float EXR with PNG previews (--maps). Each output folder is written whole, then renamed "
         "into place (an existing one is replaced).",
@@ -70,6 +72,20 @@ def add_parser(subparsers) -> None:
         default=None,
         help="timesteps to export, e.g. '0,5,10-20': frames of the avatar or, held out, of "
         "its subject (default: every frame of the avatar)",
+    )
+    p.add_argument(
+        "--gaussians-only",
+        action="store_true",
+        help="--ply: the Gaussian layer alone, without the mesh as surface Gaussians (a "
+        "viewer then sees through the head where the avatar shows its mesh)",
+    )
+    p.add_argument(
+        "--surfel-spacing",
+        type=float,
+        default=DEFAULT_SPACING_PIXELS,
+        metavar="PX",
+        help="--ply: spacing of the mesh's surface Gaussians in pixels of the avatar's camera "
+        "(smaller: closer to the avatar, larger files)",
     )
     p.add_argument(
         "--half", action="store_true", help="--maps: 16-bit half floats instead of 32-bit"
@@ -93,8 +109,14 @@ def run(args: argparse.Namespace) -> int:
             check_output_dir(path, option)
     opened = open_avatar(args.avatar)
     avatar = opened.avatar
-    if args.ply is not None and avatar.num_gaussians == 0:
-        raise ValueError(f"--ply: the avatar {args.avatar} has no Gaussians (a mesh-only fit)")
+    if args.gaussians_only and args.ply is None:
+        raise ValueError("--gaussians-only applies to --ply; pass --ply DIR")
+    if args.gaussians_only and avatar.num_gaussians == 0:
+        raise ValueError(
+            f"--gaussians-only: the avatar {args.avatar} has no Gaussians (a mesh-only fit)"
+        )
+    if not args.surfel_spacing > 0:
+        raise ValueError(f"--surfel-spacing must be > 0 pixels, got {args.surfel_spacing}")
     subject = None
     if any(path is not None for path in (args.ply, args.mesh, args.glb)):
         subject = open_subject(opened, args.subject, required=False)
@@ -104,7 +126,15 @@ def run(args: argparse.Namespace) -> int:
     with torch.no_grad():
         if args.ply is not None:
             write_directory_atomically(
-                args.ply, lambda tmp: write_ply_frames(opened, subject, timesteps, tmp)
+                args.ply,
+                lambda tmp: write_ply_frames(
+                    opened,
+                    subject,
+                    timesteps,
+                    tmp,
+                    gaussians_only=args.gaussians_only,
+                    spacing_pixels=args.surfel_spacing,
+                ),
             )
             print(f"wrote {len(timesteps)} PLY files to {args.ply}")
         if args.mesh is not None:
@@ -123,33 +153,24 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def world_gaussians(avatar: Avatar, params, camera) -> dict:
-    """The Gaussian layer of one frame as 3DGS file arrays: ``means``, ``normals``,
-    ``sh`` (N, K, 3) world-frame, ``opacity_logits``, ``log_scales``, ``quats``."""
-    with torch.no_grad():
-        verts, rotations = avatar.skin(params)
-        lift = avatar.lift_gaussians(verts, rotations, camera)
-        samples = avatar.layout.split(texture(avatar.maps.detach(), avatar.gaussian_uv))
-    return {
-        "means": lift.means,
-        "normals": _quat_z_axis(lift.quats),
-        "sh": rotate_sh(lift.sh, nearest_rotation(lift.frames)),
-        "opacity_logits": samples.opacity,
-        "log_scales": samples.scale,
-        "quats": lift.quats,
-    }
-
-
-def _quat_z_axis(q: torch.Tensor) -> torch.Tensor:
-    """(N, 4) unit (w, x, y, z) → (N, 3) the rotated z axis (the surface normal here)."""
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)], -1)
-
-
-def write_ply_frames(opened: OpenedAvatar, subject, timesteps: list[int], folder: Path) -> None:
+def write_ply_frames(
+    opened: OpenedAvatar,
+    subject,
+    timesteps: list[int],
+    folder: Path,
+    *,
+    gaussians_only: bool = False,
+    spacing_pixels: float = DEFAULT_SPACING_PIXELS,
+) -> None:
+    avatar = opened.avatar
     for t in tracked(timesteps, len(timesteps), "export --ply"):
         params, camera = frame_at(opened, subject, t)
-        arrays = world_gaussians(opened.avatar, params, camera)
+        layers = []
+        if avatar.num_gaussians > 0:
+            layers.append(world_gaussians(avatar, params, camera))
+        if not gaussians_only:
+            layers.append(mesh_surfels(avatar, params, camera, spacing_pixels))
+        arrays = {key: torch.cat([layer[key] for layer in layers]) for key in layers[0]}
         write_gaussian_ply(folder / f"{t:05d}.ply", **arrays)
 
 

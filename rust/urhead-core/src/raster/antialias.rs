@@ -5,10 +5,16 @@
 //! For every pair of horizontally or vertically adjacent pixels with different triangle
 //! ids, the nearer triangle (or the only one, against background) is examined along the
 //! segment joining the two pixel centres. The triangle edge where that segment leaves it is
-//! found; if it is a silhouette edge — open (boundary / non-manifold), or its neighbour
-//! lies on the same side of it as seen from the camera — and more perpendicular than
-//! parallel to the segment, and it crosses at distance `d ∈ (−1/16, 1 + 1/16)` pixels from
-//! the inside pixel centre (`d` clamped to [0, 1]), the two colours are blended:
+//! found; while that edge is not a silhouette edge, the segment is followed into the
+//! neighbouring triangle across it (at most [`MAX_WALK`] triangles, never beyond the
+//! segment). nvdiffrast stops at the first triangle; near a silhouette, where triangles are
+//! seen edge-on as slivers thinner than a pixel, the segment usually crosses several, and
+//! stopping leaves most silhouette pixels hard (on a head at 256², mean |coverage − true
+//! coverage| on the silhouette band 0.10 stopping, 0.06 walking; 4× supersampling 0.06).
+//! A silhouette edge is open (boundary / non-manifold), or its neighbour lies on the same
+//! side of it as seen from the camera. If the edge found is more perpendicular than
+//! parallel to the segment and crosses at distance `d ∈ (−1/16, 1 + 1/16)` pixels from the
+//! inside pixel centre (`d` clamped to [0, 1]), the two colours are blended:
 //! `α = ±(0.5 − d)`; the inside pixel takes `α` of the outside colour when `d < 0.5`,
 //! otherwise the outside pixel takes `d − 0.5` of the inside colour. The blend is
 //! continuous as an edge sweeps across a pixel centre.
@@ -16,8 +22,9 @@
 //! Gradients: to the colours (linear) and to the two vertices of the crossing edge
 //! through `d`, with the edge's extent across the segment guarded by `copysign(1e-3 px)`
 //! and no position gradient where `|α| ≥ 0.5` (a clamped crossing). Triangles with a
-//! vertex at depth `≤ near` are not antialiased (their projection is not a triangle).
-//! Pass the welded geometry faces: UV-split faces would make every seam a silhouette.
+//! vertex at depth `≤ near` are not antialiased and end a walk (their projection is not a
+//! triangle). Pass the welded geometry faces: UV-split faces would make every seam a
+//! silhouette.
 
 use rayon::prelude::*;
 
@@ -32,6 +39,10 @@ use crate::Real;
 const CROSSING_TOLERANCE: f64 = 1.0 / 16.0;
 /// Guard on the edge's extent across the segment in the gradient (pixels).
 const GRADIENT_GUARD: f64 = 1e-3;
+/// Triangles a pixel pair's segment is followed through in search of its silhouette edge.
+pub const MAX_WALK: usize = 16;
+/// Bit of [`Scene::silhouette`] set when the triangle projects (no vertex behind `near`).
+const PROJECTS: u8 = 1 << 3;
 
 /// Gradients of [`antialias_backward`]; a field is `Some` exactly when it was asked for.
 #[derive(Debug, Clone, Default)]
@@ -67,9 +78,12 @@ struct Scene<'a, T> {
     tri_id: &'a [i32],
     depth: &'a [T],
     faces: &'a [i32],
+    /// `(F, 3)`: the face across each edge, −1 for none.
+    topology: &'a [i32],
     /// `(V, 3)`: pixel x, pixel y, camera depth.
     projected: Vec<[f64; 3]>,
-    /// Bit k set when edge k (opposite vertex k) of the triangle is a silhouette edge.
+    /// Bit k set when edge k (opposite vertex k) of the triangle is a silhouette edge;
+    /// [`PROJECTS`] set when the triangle is in front of the near plane.
     silhouette: Vec<u8>,
 }
 
@@ -135,7 +149,7 @@ impl<'a, T: Real> AntialiasInputs<'a, T> {
             3 * num_faces,
             &format!("(F, 3) = ({num_faces}, 3)"),
         )?;
-        check_indices("topology", self.topology, -1, num_verts as i64)?;
+        check_indices("topology", self.topology, -1, num_faces as i64)?;
         check_finite("verts", self.verts)?;
         Ok((w, h, c))
     }
@@ -161,18 +175,18 @@ impl<'a, T: Real> AntialiasInputs<'a, T> {
             .faces
             .par_chunks(3)
             .zip(self.topology.par_chunks(3))
-            .map(|(f, opp)| {
+            .map(|(f, across)| {
                 let v = [0, 1, 2].map(|k| &cam_space[f[k] as usize]);
                 if v.iter().any(|c| c[2] <= near || c[2].is_nan()) {
                     return 0u8;
                 }
-                let mut mask = 0u8;
+                let mut mask = PROJECTS;
                 for k in 0..3 {
                     let (a, b) = (v[(k + 1) % 3], v[(k + 2) % 3]);
-                    let silhouette = opp[k] < 0 || {
+                    let silhouette = across[k] < 0 || {
                         // Sides of the plane through the camera centre and the edge.
                         let own = side(a, b, v[k]);
-                        let other = side(a, b, &cam_space[opp[k] as usize]);
+                        let other = side(a, b, &cam_space[third_vertex(self.faces, across[k], f)]);
                         let product = own * other;
                         product >= 0.0 || product.is_nan()
                     };
@@ -187,10 +201,18 @@ impl<'a, T: Real> AntialiasInputs<'a, T> {
             tri_id: self.tri_id,
             depth: self.depth,
             faces: self.faces,
+            topology: self.topology,
             projected,
             silhouette,
         }
     }
+}
+
+/// The vertex of face `other` that is not on the edge it shares with `face` (the edge's
+/// two vertices are the ones `face` has in common with it).
+fn third_vertex(faces: &[i32], other: i32, face: &[i32]) -> usize {
+    let o = &faces[3 * other as usize..3 * other as usize + 3];
+    *o.iter().find(|v| !face.contains(v)).unwrap_or(&o[0]) as usize
 }
 
 /// det(a, b, p): which side of the plane through the origin, `a` and `b` the point lies.
@@ -233,12 +255,6 @@ impl<T: Real> Scene<'_, T> {
             let (d0, d1) = (self.depth[p0], self.depth[p1]);
             d0 < d1 || (d0 == d1 && t0 < t1)
         };
-        let tri = if first_inside { t0 } else { t1 } as usize;
-        let mask = self.silhouette[tri];
-        if mask == 0 {
-            return None;
-        }
-        // Frame: origin at the inside pixel centre, x along the pair, y across it.
         let (ix, iy) = if first_inside {
             (x, y)
         } else if vertical {
@@ -247,37 +263,52 @@ impl<T: Real> Scene<'_, T> {
             (x + 1, y)
         };
         let centre = [ix as f64 + 0.5, iy as f64 + 0.5];
-        let f = &self.faces[3 * tri..3 * tri + 3];
-        let rel = [0, 1, 2].map(|k| {
-            let q = &self.projected[f[k] as usize];
-            let (dx, dy) = (q[0] - centre[0], q[1] - centre[1]);
-            if vertical {
-                [dy, dx]
-            } else {
-                [dx, dy]
-            }
-        });
-        // Distance along the pair direction at which each crossing edge leaves the
-        // triangle; the exit edge is the farthest crossing.
         let dir = if first_inside { 1.0 } else { -1.0 };
-        let mut exit: Option<(usize, f64)> = None;
-        for k in 0..3 {
-            let (a, b) = (rel[(k + 1) % 3], rel[(k + 2) % 3]);
-            if (a[1] < 0.0) == (b[1] < 0.0) {
-                continue;
+        let mut tri = if first_inside { t0 } else { t1 } as usize;
+        let (f, k, d, a, b) = 'walk: {
+            for _ in 0..MAX_WALK {
+                let mask = self.silhouette[tri];
+                if mask & PROJECTS == 0 {
+                    return None;
+                }
+                let f = &self.faces[3 * tri..3 * tri + 3];
+                // Frame: origin at the inside pixel centre, x along the pair, y across it.
+                let rel = [0, 1, 2].map(|k| {
+                    let q = &self.projected[f[k] as usize];
+                    let (dx, dy) = (q[0] - centre[0], q[1] - centre[1]);
+                    if vertical {
+                        [dy, dx]
+                    } else {
+                        [dx, dy]
+                    }
+                });
+                // Distance along the pair direction at which each crossing edge leaves the
+                // triangle; the exit edge is the farthest crossing.
+                let mut exit: Option<(usize, f64)> = None;
+                for k in 0..3 {
+                    let (a, b) = (rel[(k + 1) % 3], rel[(k + 2) % 3]);
+                    if (a[1] < 0.0) == (b[1] < 0.0) {
+                        continue;
+                    }
+                    let crossing = dir * (a[0] * b[1] - b[0] * a[1]) / (b[1] - a[1]);
+                    if exit.is_none_or(|(_, d)| crossing > d) {
+                        exit = Some((k, crossing));
+                    }
+                }
+                let (k, d) = exit?;
+                if mask & (1 << k) != 0 {
+                    break 'walk (f, k, d, rel[(k + 1) % 3], rel[(k + 2) % 3]);
+                }
+                let next = self.topology[3 * tri + k];
+                if next < 0 || d >= 1.0 + CROSSING_TOLERANCE {
+                    return None;
+                }
+                tri = next as usize;
             }
-            let crossing = dir * (a[0] * b[1] - b[0] * a[1]) / (b[1] - a[1]);
-            if exit.is_none_or(|(_, d)| crossing > d) {
-                exit = Some((k, crossing));
-            }
-        }
-        let (k, d) = exit?;
-        let (a, b) = (rel[(k + 1) % 3], rel[(k + 2) % 3]);
+            return None;
+        };
         let (ex, ey) = (b[0] - a[0], b[1] - a[1]);
-        let accept = mask & (1 << k) != 0
-            && ey.abs() >= ex.abs()
-            && d > -CROSSING_TOLERANCE
-            && d < 1.0 + CROSSING_TOLERANCE;
+        let accept = ey.abs() >= ex.abs() && d > -CROSSING_TOLERANCE && d < 1.0 + CROSSING_TOLERANCE;
         if !accept {
             return None;
         }

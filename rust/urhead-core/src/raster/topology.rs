@@ -4,9 +4,9 @@ use super::check_faces;
 use crate::error::Result;
 
 /// For every face `f` and edge `k` (the edge opposite vertex `k`, i.e. between vertices
-/// `k+1` and `k+2`), the third vertex of the other face sharing that edge, or −1 when the
-/// edge is on the boundary, shared by more than two faces (non-manifold), or belongs to a
-/// degenerate face (a repeated index). `(F, 3)`, int32.
+/// `k+1` and `k+2`), the other face sharing that edge, or −1 when the edge is on the
+/// boundary, shared by more than two faces (non-manifold), or belongs to a degenerate face
+/// (a repeated index). `(F, 3)`, int32.
 pub fn edge_topology(faces: &[i32], num_verts: usize) -> Result<Vec<i32>> {
     let num_faces = check_faces("faces", faces, num_verts, "V")?;
     let mut edges: Vec<(u64, u32)> = Vec::with_capacity(3 * num_faces);
@@ -21,7 +21,7 @@ pub fn edge_topology(faces: &[i32], num_verts: usize) -> Result<Vec<i32>> {
     }
     // Unique (key, slot) pairs: the order, and so the result, is fully determined.
     edges.sort_unstable();
-    let mut opposite = vec![-1i32; 3 * num_faces];
+    let mut neighbour = vec![-1i32; 3 * num_faces];
     let mut i = 0;
     while i < edges.len() {
         let mut j = i + 1;
@@ -30,12 +30,12 @@ pub fn edge_topology(faces: &[i32], num_verts: usize) -> Result<Vec<i32>> {
         }
         if j - i == 2 {
             let (s, t) = (edges[i].1 as usize, edges[i + 1].1 as usize);
-            opposite[s] = faces[t];
-            opposite[t] = faces[s];
+            neighbour[s] = (t / 3) as i32;
+            neighbour[t] = (s / 3) as i32;
         }
         i = j;
     }
-    Ok(opposite)
+    Ok(neighbour)
 }
 
 #[cfg(test)]
@@ -49,8 +49,9 @@ mod tests {
         // 0---1
         let faces = [0, 1, 2, 0, 2, 3];
         let topo = edge_topology(&faces, 4).unwrap();
-        // Face 0's edge opposite vertex 1 is (2, 0), shared with face 1 whose third is 3.
-        assert_eq!(topo, vec![-1, 3, -1, -1, -1, 1]);
+        // Face 0's edge opposite vertex 1 is (2, 0), shared with face 1; face 1's edge
+        // opposite vertex 3 is (0, 2), shared with face 0.
+        assert_eq!(topo, vec![-1, 1, -1, -1, -1, 0]);
     }
 
     #[test]
