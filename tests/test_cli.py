@@ -62,7 +62,7 @@ def test_the_command_table_matches_the_modules():
     "command, expected",
     [
         ("render", ["views in the orbit (default: 60)", "MP4 frame rate (default: 25.0)"]),
-        ("eval", ["frames to score (default: test)", "(default: 40)"]),
+        ("eval", ["frames to score (default: test)", "--refine-flame (default: 20)"]),
         ("synth", ["(default: 600)"]),
         ("reenact", ["MP4 frame rate (default: 25.0)"]),
         # fit: the field's default and the quick preset's value, side by side

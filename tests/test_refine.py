@@ -107,9 +107,8 @@ def test_warm_start_carries_the_previous_correction(head):
     frames = [_frame(avatar, truth, t, cam) for t in (100, 101)]
     starts = [_perturbed(truth), _perturbed(truth)]
     calls = []
-    # A budget the cold start cannot converge in: since the antialias gradient follows
-    # silhouettes across interior edges, 15 steps take both starts to the same plateau
-    # (pose error 0.0358 either way); at 8, warm 0.037 vs cold 0.051.
+    # A budget the cold start cannot converge in: 15 steps take both starts to the same
+    # plateau (pose error 0.0358 either way); at 8, warm 0.037 vs cold 0.051.
     budget = RefineSettings(steps=8, full_steps=0)
     warm = refine_sequence(avatar, frames, starts, budget, progress=lambda: calls.append(1))
     cold = refine_sequence(avatar, frames, starts, replace(budget, warm_start=False))
