@@ -1,9 +1,10 @@
 """Reading a subject in the VHAP / GaussianAvatars layout (see :mod:`urhead.data.layout`).
 
-Everything cheap is checked when the subject is opened: the JSON files and every key the
-reader needs, the existence and PNG header (size) of every referenced image, mask and
-normal map, and every FLAME parameter file (they are small and loaded whole). Images are
-decoded lazily, when a frame is indexed, through a bounded LRU cache shared by the splits.
+Everything is checked when the subject is opened: the JSON files and every key the reader
+needs, every referenced image, mask and normal map (decoded whole once: size, bit depth,
+channels, an intact body) and every FLAME parameter file (they are small and loaded
+whole). The pixels are then decoded again when a frame is indexed, through a bounded LRU
+cache shared by the splits.
 """
 
 from __future__ import annotations
@@ -21,7 +22,14 @@ import numpy as np
 import torch
 
 from urhead.camera import Camera
-from urhead.data.images import exr_size, png_size, read_exr_rgb, read_png, read_png_uint8
+from urhead.data.images import (
+    check_png,
+    exr_size,
+    png_size,
+    read_exr_rgb,
+    read_png,
+    read_png_uint8,
+)
 from urhead.data.layout import (
     CANONICAL_FLAME,
     FLAME_OPTIONAL_SHAPES,
@@ -381,12 +389,14 @@ def _frame_record(root, path, i, frame, meta, cameras) -> FrameRecord:
         raise MissingFileError(
             flame_path, f"not found (flame_param_path of {where} in {path.name})"
         )
-    for p, what in ((image_path, "file_path"), (mask_path, "fg_mask_path")):
-        if p is not None:
-            _check_png(p, width, height, f"{what} of {where} in {path.name}")
+    # The image's alpha is the mask when there is no mask file.
+    image_channels = (3, 4) if mask_path is not None else (4,)
+    _check_png(image_path, width, height, image_channels, f"file_path of {where} in {path.name}")
+    if mask_path is not None:
+        _check_png(mask_path, width, height, (1, 3, 4), f"fg_mask_path of {where} in {path.name}")
     normals_path = root / NORMALS_DIR / (image_path.stem + ".png")
     if normals_path.is_file():
-        _check_png(normals_path, width, height, f"normal map of {where} in {path.name}")
+        _check_png(normals_path, width, height, (3,), f"normal map of {where} in {path.name}")
     elif normals_path.with_suffix(".exr").is_file():
         normals_path = normals_path.with_suffix(".exr")
         size = exr_size(normals_path)
@@ -409,12 +419,16 @@ def _frame_record(root, path, i, frame, meta, cameras) -> FrameRecord:
     )
 
 
-def _check_png(p: Path, width: int, height: int, what: str) -> None:
+def _check_png(p: Path, width: int, height: int, channels: tuple[int, ...], what: str) -> None:
+    """The header's size (cheap, the clearer message), then the whole file decoded: a
+    corrupt body is found now, not when the frame is first used (after training, for a
+    held-out frame)."""
     if not p.is_file():
         raise MissingFileError(p, f"not found ({what})")
     size = png_size(p)
     if size != (width, height):
         raise DatasetError(p, f"is {size[0]}×{size[1]} but the transforms say {width}×{height}")
+    check_png(p, width, height, channels)
 
 
 def _read_flame(path: Path) -> dict:

@@ -9,7 +9,6 @@ head) or from :func:`load_head` (our ``.npz``). Everything downstream reads only
 from __future__ import annotations
 
 import os
-import tempfile
 from dataclasses import dataclass, fields
 from pathlib import Path
 
@@ -17,6 +16,7 @@ import numpy as np
 import torch
 
 from urhead.errors import DTypeError, IndexRangeError, InvalidArgumentError, ShapeError
+from urhead.files import write_file_atomically
 
 FORMAT_VERSION = 1
 """Version of the ``.npz`` head format written by :func:`save_head`."""
@@ -217,15 +217,7 @@ def save_head(head: HeadModel, path: str | os.PathLike) -> None:
     arrays["num_shape"] = np.int32(head.num_shape)
     arrays["num_expr"] = np.int32(head.num_expr)
     arrays["format_version"] = np.int32(FORMAT_VERSION)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_file_atomically(path, lambda tmp: np.savez(tmp, **arrays))
 
 
 def load_head(path: str | os.PathLike) -> HeadModel:

@@ -18,54 +18,18 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from urhead.errors import InvalidArgumentError, ShapeError
+from urhead.files import write_directory_atomically
 from urhead.head import load_head, save_head
 from urhead.model.avatar import POSE_SIZE, Avatar
 from urhead.model.layout import MapLayout
 
 AVATAR_FORMAT = 1
-
-
-def write_directory_atomically(path: Path, fill) -> None:
-    """Calls ``fill(tmp_dir)`` on a fresh sibling directory, then renames it to ``path``
-    (replacing an existing ``path``). A failure leaves ``path`` as it was."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    old = path.with_name(f".{path.name}.old-{os.getpid()}")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir()
-    try:
-        fill(tmp)
-        _fsync_dir(tmp)
-        if path.exists():
-            os.replace(path, old)
-        os.replace(tmp, path)
-        _fsync_dir(path.parent)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        if old.exists() and not path.exists():
-            os.replace(old, path)
-        raise
-    shutil.rmtree(old, ignore_errors=True)
-
-
-def _fsync_dir(path: Path) -> None:
-    for f in path.iterdir():
-        if f.is_file():
-            with open(f, "rb") as fh:
-                os.fsync(fh.fileno())
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def write_avatar_files(avatar: Avatar, folder: Path, extra: dict | None = None) -> None:

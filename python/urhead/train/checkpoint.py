@@ -10,7 +10,8 @@ from pathlib import Path
 
 import torch
 
-from urhead.model.io import load_avatar, write_avatar_files, write_directory_atomically
+from urhead.files import write_directory_atomically
+from urhead.model.io import load_avatar, write_avatar_files
 
 CHECKPOINT_DIR = "checkpoint"
 

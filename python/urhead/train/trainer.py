@@ -10,6 +10,7 @@ runs with different logging settings compare.
 from __future__ import annotations
 
 import csv
+import io
 import json
 import logging
 import math
@@ -24,6 +25,7 @@ import torch.nn.functional as F
 from urhead.config import FitConfig
 from urhead.data.background import subject_background
 from urhead.eval import RefineSettings, evaluate_frames
+from urhead.files import write_bytes_atomically
 from urhead.losses import psnr
 from urhead.model import ErrorAccumulator, UvSurface, build_avatar, save_avatar, set_gaussians
 from urhead.model.avatar import Avatar, Render
@@ -413,18 +415,15 @@ def _title(c: FitConfig, avatar: Avatar) -> str:
 
 
 def _write_history(path: Path, history: list) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w", newline="") as f:
-        writer = csv.writer(f)
-        writer.writerow(["seconds", "iteration", "psnr"])
-        writer.writerows(history)
-    tmp.replace(path)
+    rows = io.StringIO(newline="")
+    writer = csv.writer(rows)
+    writer.writerow(["seconds", "iteration", "psnr"])
+    writer.writerows(history)
+    write_bytes_atomically(path, rows.getvalue().encode())
 
 
 def _atomic_text(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
+    write_bytes_atomically(path, text.encode())
 
 
 def _progress(total: int, initial: int, enabled: bool, desc: str = "fit"):

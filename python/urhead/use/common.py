@@ -14,6 +14,7 @@ import torch
 
 from urhead.camera import Camera
 from urhead.errors import InvalidArgumentError
+from urhead.files import write_file_atomically
 from urhead.model import Avatar, load_avatar
 
 
@@ -216,24 +217,6 @@ def check_output_file(path: Path, option: str, suffix: str) -> Path:
     if path.is_dir():
         raise InvalidArgumentError(f"{option} {path}: is a directory")
     return path
-
-
-def temporary_sibling(path: Path) -> Path:
-    """A hidden name next to ``path`` with the same suffix (writers pick formats by it)."""
-    return path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
-
-
-def write_file_atomically(path: Path, write) -> None:
-    """Calls ``write(tmp_path)``, flushes the file to disk, then renames it into place."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = temporary_sibling(path)
-    try:
-        write(tmp)
-        with open(tmp, "rb+") as f:
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
 
 
 def to_uint8(image: torch.Tensor) -> np.ndarray:
