@@ -9,6 +9,7 @@ cache shared by the splits.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -144,6 +145,20 @@ class Subject:
         self._cache: OrderedDict[Path, Frame] = OrderedDict()
         self._cache_size = cache_size
         self._lock = threading.Lock()
+
+    def fingerprint(self) -> str:
+        """SHA-256 (hex) of what a fit depends on besides the pixels: every split's
+        timesteps, cameras and FLAME parameters. A checkpoint records it, so resuming with
+        another subject (or another tracking of it) is recognised."""
+        digest = hashlib.sha256()
+        for split in (self.train, self.val, self.test):
+            for r in split.records:
+                digest.update(f"{split.name} {r.timestep} {r.camera_index}".encode())
+                digest.update(r.camera.K.numpy().tobytes() + r.camera.viewmat.numpy().tobytes())
+                digest.update(f"{r.camera.width}x{r.camera.height}".encode())
+                for key, value in sorted(self.flame[r.flame_path].items()):
+                    digest.update(key.encode() + np.ascontiguousarray(value).tobytes())
+        return digest.hexdigest()
 
     def __repr__(self) -> str:
         return (
@@ -367,6 +382,15 @@ def _frame_record(root, path, i, frame, meta, cameras) -> FrameRecord:
         raise DatasetError(path, f"{where}.transform_matrix must hold numbers") from None
     if not np.all(np.isfinite(c2w)):
         raise DatasetError(path, f"{where}.transform_matrix must be finite")
+    rotation = c2w[:3, :3]
+    # A camera pose is rigid: a scaled or sheared matrix would move every pixel's ray.
+    rigid = np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-4) and np.linalg.det(rotation) > 0
+    if not rigid or not np.allclose(c2w[3], (0, 0, 0, 1), atol=1e-6):
+        raise DatasetError(
+            path,
+            f"{where}.transform_matrix is not a rigid camera pose (its 3×3 part must be a "
+            "rotation and its last row 0 0 0 1)",
+        )
     key = (c2w.tobytes(), intrinsics, width, height)
     if key not in cameras:
         try:

@@ -31,6 +31,8 @@ import pickle
 import numpy as np
 import scipy.sparse
 
+from urhead.errors import reading
+
 _RENAMED_MODULES = {"copy_reg": "copyreg", "__builtin__": "builtins"}
 _DATA_BUILTINS = {"set": set, "frozenset": frozenset, "complex": complex, "object": object}
 _NUMPY_CORE = ("numpy.core.multiarray", "numpy._core.multiarray")
@@ -177,11 +179,12 @@ def load_flame_pickle(path) -> dict:
     """The FLAME pickle at ``path`` as a dict of plain numpy arrays and scipy sparse
     matrices (chumpy objects replaced by their arrays; a chumpy expression without an
     array stays a :class:`ChumpyStub`)."""
-    with open(path, "rb") as f:
-        raw = FlameUnpickler(f).load()
-    if not isinstance(raw, dict):
-        raise pickle.UnpicklingError(f"{path}: expected a dict, got {type(raw).__name__}")
-    return {str(k): to_plain(v) for k, v in raw.items()}
+    with reading(path, "FLAME pickle"):
+        with open(path, "rb") as f:
+            raw = FlameUnpickler(f).load()
+        if not isinstance(raw, dict):
+            raise pickle.UnpicklingError(f"expected a dict, got {type(raw).__name__}")
+        return {str(k): to_plain(v) for k, v in raw.items()}
 
 
 def to_plain(value):

@@ -26,9 +26,11 @@ from urhead.config import FitConfig
 from urhead.data.background import subject_background
 from urhead.eval import RefineSettings, evaluate_frames
 from urhead.files import write_bytes_atomically
+from urhead.head import head_fingerprint
 from urhead.losses import psnr
 from urhead.model import ErrorAccumulator, UvSurface, build_avatar, save_avatar, set_gaussians
 from urhead.model.avatar import Avatar, Render
+from urhead.model.io import add_to_description
 from urhead.ops import TextureGather, texture
 from urhead.optim import SparseAdam
 from urhead.train.checkpoint import (
@@ -118,6 +120,8 @@ class Trainer:
             raise ValueError(f"{subject.root}: the subject has no test or val frames to score")
         requested = None if config.background == "auto" else config.background
         self.background = subject_background(subject, requested)
+        # Recorded in checkpoints: resuming with another subject or head is refused.
+        self.inputs = {"subject": subject.fingerprint(), "head": head_fingerprint(head)}
 
     # --- set-up --------------------------------------------------------------------
 
@@ -209,6 +213,12 @@ class Trainer:
                     f"{checkpoint}: was written with a different configuration; "
                     "resume with the same options or start a new --out"
                 )
+            for key, option in (("subject", f"subject {self.subject.root}"), ("head", "--head")):
+                if saved.get("inputs", {}).get(key) != self.inputs[key]:
+                    raise ValueError(
+                        f"{checkpoint}: was written for another {key} than {option}; "
+                        "resume with the same subject and --head or start a new --out"
+                    )
             log.info("resuming from %s at iteration %d", checkpoint, saved["iteration"])
         else:
             avatar, saved = self._new_state()
@@ -315,6 +325,7 @@ class Trainer:
 
     def _checkpoint_state(self, state: FitState) -> dict:
         return {
+            "inputs": self.inputs,
             "iteration": state.iteration,
             "seconds": state.seconds,
             "history": list(state.history),
@@ -357,6 +368,12 @@ class Trainer:
         c = self.config
         avatar.maps.requires_grad_(False)
         avatar.frame_params.requires_grad_(False)
+        recorded = {
+            "subject": str(Path(self.subject.root).resolve()),
+            "camera": self.subject.train.records[0].camera.to_dict(),
+        }
+        # Written before the final evaluation, so a failure there never loses the fit.
+        save_avatar(avatar, self.out / "avatar", extra={"config": asdict(c), **recorded})
         held_out = list(self.held_out)
         refine = RefineSettings(steps=c.refine_steps)
         tick = time.perf_counter()
@@ -391,15 +408,7 @@ class Trainer:
             "against the frozen avatar",
             "background": avatar.background.tolist(),
         }
-        recorded = {
-            "subject": str(Path(self.subject.root).resolve()),
-            "camera": self.subject.train.records[0].camera.to_dict(),
-        }
-        save_avatar(
-            avatar,
-            self.out / "avatar",
-            extra={"config": asdict(c), "metrics": metrics, **recorded},
-        )
+        add_to_description(self.out / "avatar", {"metrics": metrics})
         _write_history(self.out / PSNR_CSV, history)
         plot_psnr_vs_time(history, self.out / "psnr_vs_time.png", title=_title(c, avatar))
         _atomic_text(self.out / "metrics.json", json.dumps(metrics, indent=2))

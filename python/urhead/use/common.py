@@ -3,7 +3,6 @@ the camera to render from, and writing output files atomically."""
 
 from __future__ import annotations
 
-import json
 import os
 import re
 from dataclasses import dataclass
@@ -14,8 +13,8 @@ import torch
 
 from urhead.camera import Camera
 from urhead.errors import InvalidArgumentError
-from urhead.files import write_file_atomically
-from urhead.model import Avatar, load_avatar
+from urhead.model import Avatar
+from urhead.model.io import add_to_description, load_avatar_and_description
 
 
 @dataclass
@@ -36,9 +35,7 @@ def open_avatar(path: Path) -> OpenedAvatar:
     path = Path(path)
     if not path.is_dir():
         raise FileNotFoundError(f"AVATAR {path}: no such directory (pass the fit's OUT/avatar)")
-    avatar = load_avatar(path)
-    meta = json.loads((path / "avatar.json").read_text())
-    return OpenedAvatar(avatar, meta, path)
+    return OpenedAvatar(*load_avatar_and_description(path), path)
 
 
 def open_subject(opened: OpenedAvatar, subject: Path | None, *, required: bool = True):
@@ -86,10 +83,7 @@ def subject_record(avatar_dir: Path, subject_root: Path) -> dict:
 
 def add_subject_record(avatar_dir: Path, subject_root: Path) -> None:
     """Adds :func:`subject_record` to an avatar's avatar.json (rewritten atomically)."""
-    meta_path = Path(avatar_dir) / "avatar.json"
-    meta = json.loads(meta_path.read_text())
-    meta.update(subject_record(avatar_dir, subject_root))
-    write_file_atomically(meta_path, lambda tmp: tmp.write_text(json.dumps(meta, indent=2)))
+    add_to_description(avatar_dir, subject_record(avatar_dir, subject_root))
 
 
 def add_background_option(parser) -> None:
