@@ -40,7 +40,11 @@ def write_file_atomically(path: str | os.PathLike, write: Callable[[Path], None]
     remove_stale_temporaries(path.parent)
     tmp = temporary_name(path)
     try:
-        write(tmp)
+        try:
+            write(tmp)
+        except OSError as e:
+            code = e.errno or errno.EIO
+            raise OSError(code, f"{path}: cannot be written ({os.strerror(code)})") from None
         _fsync_file(tmp, path)
         os.replace(tmp, path)
         _fsync_folder(path.parent)
