@@ -171,6 +171,7 @@ def test_out_is_locked_and_a_finished_fit_needs_force(use, tmp_path):
     out = tmp_path / "out"
     with folder_lock(out, "--out"), pytest.raises(InvalidArgumentError, match="another urhead"):
         fit_subject(use.subject_dir, out, TINY_FIT, progress=False)
+    assert not (out / "avatar").exists()
     shutil.copytree(use.avatar_dir, out / "avatar")
     with pytest.raises(InvalidArgumentError, match="--force"):
         fit_subject(use.subject_dir, out, TINY_FIT, progress=False)

@@ -64,16 +64,16 @@ def fit_subject(
 
     check_fit_memory(config)
     out = Path(out)
-    with folder_lock(out, "--out"):
-        finished = out / "avatar" / "avatar.json"
-        if finished.is_file() and not (resume or force):
-            raise InvalidArgumentError(
-                f"--out {out}: holds a finished fit ({finished.parent}); pass --force to "
-                "replace it, or choose another --out"
-            )
+    finished = out / "avatar" / "avatar.json"
+    if finished.is_file() and not (resume or force):
+        raise InvalidArgumentError(
+            f"--out {out}: holds a finished fit ({finished.parent}); pass --force to "
+            "replace it, or choose another --out"
+        )
+    subject = load_subject(subject_dir, test_last=test_last)
+    head = load_head(head_path) if head_path is not None else procedural_head(0)
+    with folder_lock(out, "--out"):  # created only once the inputs are known to be good
         remove_stale_temporaries(out)
-        subject = load_subject(subject_dir, test_last=test_last)
-        head = load_head(head_path) if head_path is not None else procedural_head(0)
         result = Trainer(subject, head, config, out, progress=progress).run(resume=resume)
         # The trainer records the subject's absolute path; the relative one lets an avatar
         # moved together with its subject find it.
