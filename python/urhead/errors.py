@@ -2,6 +2,7 @@
 (``ValueError``, ``TypeError``, ``MemoryError``) and its message names the argument."""
 
 import os
+import pickle
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -26,6 +27,12 @@ class CorruptFileError(ValueError):
     def __init__(self, path: str | os.PathLike, message: str):
         self.path = Path(path)
         super().__init__(f"{self.path}: {message}")
+
+
+class UnsafePickleError(pickle.UnpicklingError, ValueError):
+    """A pickle names a callable that loading it would run (``os.system``, ``eval``, …):
+    refused before anything is called. A ``ValueError`` too, so it reaches the user as the
+    one-line error it is."""
 
 
 @contextmanager
@@ -60,4 +67,5 @@ __all__ = [
     "NonFiniteError",
     "ShapeError",
     "SizeLimitError",
+    "UnsafePickleError",
 ]
