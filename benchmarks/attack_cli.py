@@ -55,6 +55,8 @@ class Attempt:
     """check(proc) → a class overriding "silent" / "ok" when the command exits 0."""
     expect_success: bool = False
     cleanup: object = None
+    broken_after_failure: Path | None = None
+    """A folder where a failed command must leave no broken output (else half-written)."""
 
 
 CASES = {}
@@ -189,9 +191,19 @@ def decodes(path: Path) -> bool:
 
 
 def broken_outputs(folder: Path) -> list:
-    """PNGs that do not decode and MP4s without frames under ``folder``."""
-    broken = [p for p in folder.rglob("*.png") if not decodes(p)]
-    for mp4 in folder.rglob("*.mp4"):
+    """PNGs that do not decode and MP4s without frames under ``folder``, hidden
+    temporaries aside (they never took an output's name)."""
+
+    def visible(pattern):
+        found = folder.rglob(pattern)
+        return [
+            p
+            for p in found
+            if not any(part.startswith(".") for part in p.relative_to(folder).parts)
+        ]
+
+    broken = [p for p in visible("*.png") if not decodes(p)]
+    for mp4 in visible("*.mp4"):
         try:
             import av
 
@@ -539,37 +551,118 @@ def resume_other_head(f: Fixtures):
 # --- outputs -------------------------------------------------------------------------
 
 
-@case
-def render_full_disk(f: Fixtures):
-    out = f.scratch("full_disk")
-    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=60k", "tmpfs", str(out)]).returncode:
+def mount_small_disk(folder: Path, size_bytes: int):
+    """Mounts a tmpfs of ``size_bytes`` (whole pages, at least one) on ``folder``: a disk
+    that really fills. Returns the unmount, or None when mounting is not permitted."""
+    pages = max(1, size_bytes // 4096)
+    mount = ["mount", "-t", "tmpfs", "-o", f"size={pages * 4}k", "tmpfs", str(folder)]
+    if subprocess.run(mount, capture_output=True).returncode:
+        return None
+    return lambda: subprocess.run(["umount", str(folder)], check=True)
+
+
+def bytes_written(f: Fixtures, name: str, argv_of) -> int:
+    """What ``argv_of(folder)`` writes into an empty folder on the real disk, in bytes."""
+    probe = f.scratch(name + "_probe")
+    run_quiet(argv_of(probe))
+    return sum(p.stat().st_size for p in probe.rglob("*") if p.is_file())
+
+
+def full_disk(f: Fixtures, name: str, argv_of) -> Attempt | None:
+    """``argv_of(out)`` on a tmpfs holding half of what the command writes: the disk fills
+    in the middle of the output. Skipped where mounting needs privileges this process
+    lacks."""
+    half = bytes_written(f, name, argv_of) // 2
+    out = f.scratch(name)
+    unmount = mount_small_disk(out, half)
+    if unmount is None:
         return None
     return Attempt(
-        urhead("render", f.avatar, "--out", out / "render"),
+        argv_of(out),
         names=str(out),
         check=half_written_unless_whole(out),
-        cleanup=lambda: subprocess.run(["umount", str(out)]),
+        broken_after_failure=out,
+        cleanup=unmount,
+    )
+
+
+@case
+def render_full_disk(f: Fixtures):
+    return full_disk(f, "full_disk", lambda out: urhead("render", f.avatar, "--out", out / "r"))
+
+
+@case
+def export_full_disk(f: Fixtures):
+    return full_disk(
+        f,
+        "full_disk_export",
+        lambda out: urhead("export", f.avatar, *("--maps", out / "maps", "--mesh", out / "mesh")),
+    )
+
+
+@case
+def synth_full_disk(f: Fixtures):
+    return full_disk(
+        f,
+        "full_disk_synth",
+        lambda out: urhead("synth", "--out", out / "s", "--resolution", 64, *SUBJECT_ARGS),
     )
 
 
 @case
 def reenact_full_disk(f: Fixtures):
+    """The MP4 (~3 kB) is smaller than one tmpfs page, so the disk is made to fill halfway
+    through it with a file-size limit (``RLIMIT_FSIZE``; Python ignores ``SIGXFSZ``, so a
+    write past it fails with ``EFBIG``) instead of a mount."""
+
+    def argv_of(out):
+        return urhead("reenact", f.avatar, "--driver", f.other_subject, "--out", out / "r.mp4")
+
+    half = bytes_written(f, "full_disk_reenact", argv_of) // 2
     out = f.scratch("full_disk_reenact")
-    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=8k", "tmpfs", str(out)]).returncode:
-        return None
+    limit = f"import resource; resource.setrlimit(resource.RLIMIT_FSIZE, ({half}, {half})); "
+    argv = argv_of(out)
+    argv = [
+        sys.executable,
+        "-c",
+        limit + "import runpy,sys; sys.argv=['urhead',*sys.argv[1:]]; "
+        "runpy.run_module('urhead', run_name='__main__')",
+        *argv[3:],
+    ]
     return Attempt(
-        urhead("reenact", f.avatar, "--driver", f.other_subject, "--out", out / "r.mp4"),
-        names=str(out),
-        check=half_written_unless_whole(out),
-        cleanup=lambda: subprocess.run(["umount", str(out)]),
+        argv, names="r.mp4", check=half_written_unless_whole(out), broken_after_failure=out
     )
+
+
+def read_only_folder(folder: Path):
+    """Makes ``folder`` read-only for this process, root included (a read-only bind mount;
+    permission bits do not stop root); returns the undo."""
+    if os.geteuid() != 0:
+        folder.chmod(0o555)
+        return lambda: folder.chmod(0o755)
+    subprocess.run(["mount", "--bind", str(folder), str(folder)], check=True)
+    subprocess.run(["mount", "-o", "remount,ro,bind", str(folder)], check=True)
+    return lambda: subprocess.run(["umount", str(folder)], check=True)
 
 
 @case
 def render_read_only_out(f: Fixtures):
     out = f.scratch("read_only")
-    out.chmod(0o555)
-    return Attempt(urhead("render", f.avatar, "--out", out / "render"), names=str(out))
+    return Attempt(
+        urhead("render", f.avatar, "--out", out / "render"),
+        names=str(out),
+        cleanup=read_only_folder(out),
+    )
+
+
+@case
+def fit_read_only_out(f: Fixtures):
+    out = f.scratch("read_only_fit")
+    return Attempt(
+        urhead("fit", f.subject, "--out", out / "fit", *FIT_ARGS),
+        names=str(out),
+        cleanup=read_only_folder(out),
+    )
 
 
 @case
@@ -699,6 +792,8 @@ def classify(attempt: Attempt, proc) -> str:
         return verdict or ("ok" if attempt.expect_success else "silent")
     if attempt.expect_success:
         return "silent" if "error:" in err else "crash"
+    if attempt.broken_after_failure and broken_outputs(attempt.broken_after_failure):
+        return "half-written"
     if WORK_MARKER in err:
         return "late error"
     if attempt.names and attempt.names not in err:

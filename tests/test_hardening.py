@@ -16,7 +16,12 @@ from urhead.config import FitConfig
 from urhead.data import DatasetError, load_subject
 from urhead.data.images import read_png, write_png
 from urhead.errors import InvalidArgumentError, SizeLimitError
-from urhead.files import folder_lock, remove_stale_temporaries, write_bytes_atomically
+from urhead.files import (
+    folder_lock,
+    remove_stale_temporaries,
+    write_bytes_atomically,
+    write_directory_atomically,
+)
 from urhead.head import procedural_head, save_head
 from urhead.head.pickle_compat import load_flame_pickle
 from urhead.model import load_avatar
@@ -152,6 +157,13 @@ def test_a_full_disk_raises_and_leaves_no_file(tmp_path):
         with pytest.raises(OSError, match=r"out\.bin: cannot be written"):
             write_bytes_atomically(disk / "out.bin", b"x" * 100_000)
         assert list(disk.iterdir()) == []
+        # A writer filling a folder fails in a plain write() that names no file: the
+        # error names the folder being written.
+        with pytest.raises(OSError, match=r"maps: cannot be written \(No space left"):
+            write_directory_atomically(
+                disk / "maps", lambda tmp: (tmp / "big.bin").write_bytes(b"x" * 100_000)
+            )
+        assert list(disk.iterdir()) == []
     finally:
         subprocess.run(["umount", str(disk)])
 
@@ -206,3 +218,24 @@ def test_a_truncated_flame_pickle_names_the_file(tmp_path):
     path.write_bytes(b"\x80\x02}q\x00(X")
     with pytest.raises(ValueError, match=r"generic_model\.pkl: is not a readable FLAME pickle"):
         load_flame_pickle(path)
+
+
+def test_an_older_checkpoint_without_fingerprints_resumes_and_is_still_checked(use, tmp_path):
+    """Checkpoints written before they recorded their inputs: the head and the training
+    timesteps they hold are compared instead."""
+    subject = load_subject(use.subject_dir)
+    trainer = Trainer(subject, procedural_head(0), TINY_FIT, tmp_path, progress=False)
+    state = trainer.start()
+    trainer.step(state)
+    legacy = trainer._checkpoint_state(state)
+    del legacy["inputs"]
+    save_checkpoint(tmp_path, state.avatar, legacy)
+    resumed = Trainer(subject, procedural_head(0), TINY_FIT, tmp_path, progress=False)
+    assert resumed.start(resume=True).iteration == state.iteration == 1
+    other_head = Trainer(subject, procedural_head(1), TINY_FIT, tmp_path, progress=False)
+    with pytest.raises(ValueError, match="another head than --head"):
+        other_head.start(resume=True)
+    shorter = load_subject(use.subject_dir, test_last=len(subject.test) + 1)
+    other_frames = Trainer(shorter, procedural_head(0), TINY_FIT, tmp_path, progress=False)
+    with pytest.raises(ValueError, match="another subject than subject"):
+        other_frames.start(resume=True)

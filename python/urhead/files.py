@@ -73,6 +73,13 @@ def write_directory_atomically(path: str | os.PathLike, fill: Callable[[Path], N
     tmp = temporary_folder(path)
     try:
         fill(tmp)
+    except OSError as e:
+        shutil.rmtree(tmp, ignore_errors=True)
+        if e.filename is not None or str(path) in str(e):
+            raise
+        # A write deep inside a writer (a full disk) raises without a file name.
+        code = e.errno or errno.EIO
+        raise OSError(code, f"{path}: cannot be written ({os.strerror(code)})") from None
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

@@ -213,12 +213,7 @@ class Trainer:
                     f"{checkpoint}: was written with a different configuration; "
                     "resume with the same options or start a new --out"
                 )
-            for key, option in (("subject", f"subject {self.subject.root}"), ("head", "--head")):
-                if saved.get("inputs", {}).get(key) != self.inputs[key]:
-                    raise ValueError(
-                        f"{checkpoint}: was written for another {key} than {option}; "
-                        "resume with the same subject and --head or start a new --out"
-                    )
+            self._check_resumed_inputs(checkpoint, avatar, saved.get("inputs"))
             log.info("resuming from %s at iteration %d", checkpoint, saved["iteration"])
         else:
             avatar, saved = self._new_state()
@@ -322,6 +317,29 @@ class Trainer:
                 save_checkpoint(self.out, state.avatar, self._checkpoint_state(state))
         bar.close()
         return self._finish(state.avatar, state.seconds, state.history)
+
+    def _check_resumed_inputs(self, checkpoint: Path, avatar: Avatar, saved: dict | None):
+        """Refuses a checkpoint of another subject or head. One written before checkpoints
+        recorded their inputs (``saved`` None) is checked on what it holds: its head and
+        its training timesteps."""
+        if saved is None:
+            log.warning(
+                "%s: an older checkpoint without the subject's fingerprint; checked: the head "
+                "and the training timesteps",
+                checkpoint,
+            )
+            timesteps = [r.timestep for r in self.subject.train.records]
+            same_frames = avatar.timesteps.tolist() == timesteps
+            saved = {
+                "head": head_fingerprint(avatar.head),
+                "subject": self.inputs["subject"] if same_frames else None,
+            }
+        for key, option in (("subject", f"subject {self.subject.root}"), ("head", "--head")):
+            if saved.get(key) != self.inputs[key]:
+                raise ValueError(
+                    f"{checkpoint}: was written for another {key} than {option}; "
+                    "resume with the same subject and --head or start a new --out"
+                )
 
     def _checkpoint_state(self, state: FitState) -> dict:
         return {
