@@ -561,20 +561,34 @@ def mount_small_disk(folder: Path, size_bytes: int):
     return lambda: subprocess.run(["umount", str(folder)], check=True)
 
 
-def bytes_written(f: Fixtures, name: str, argv_of) -> int:
-    """What ``argv_of(folder)`` writes into an empty folder on the real disk, in bytes."""
+def files_written(f: Fixtures, name: str, argv_of) -> list[Path]:
+    """The files ``argv_of(folder)`` writes into an empty folder on the real disk."""
     probe = f.scratch(name + "_probe")
     run_quiet(argv_of(probe))
-    return sum(p.stat().st_size for p in probe.rglob("*") if p.is_file())
+    return [p for p in probe.rglob("*") if p.is_file()]
 
 
-def full_disk(f: Fixtures, name: str, argv_of) -> Attempt | None:
-    """``argv_of(out)`` on a tmpfs holding half of what the command writes: the disk fills
-    in the middle of the output. Skipped where mounting needs privileges this process
-    lacks."""
-    half = bytes_written(f, name, argv_of) // 2
+def bytes_written(f: Fixtures, name: str, argv_of) -> int:
+    return sum(p.stat().st_size for p in files_written(f, name, argv_of))
+
+
+def half_of_it(files: list[Path]) -> int:
+    return sum(p.stat().st_size for p in files) // 2
+
+
+def pngs_and_one_page(files: list[Path]) -> int:
+    """Room for every PNG (whole tmpfs pages) and one page more: the disk fills while the
+    video is written."""
+    return sum(-(-p.stat().st_size // 4096) * 4096 for p in files if p.suffix == ".png") + 4096
+
+
+def full_disk(f: Fixtures, name: str, argv_of, room=half_of_it) -> Attempt | None:
+    """``argv_of(out)`` on a tmpfs of ``room(files the command writes)`` bytes (default:
+    half of them): the disk fills in the middle of the output. Skipped where mounting
+    needs privileges this process lacks."""
+    size = room(files_written(f, name, argv_of))
     out = f.scratch(name)
-    unmount = mount_small_disk(out, half)
+    unmount = mount_small_disk(out, size)
     if unmount is None:
         return None
     return Attempt(
@@ -589,6 +603,16 @@ def full_disk(f: Fixtures, name: str, argv_of) -> Attempt | None:
 @case
 def render_full_disk(f: Fixtures):
     return full_disk(f, "full_disk", lambda out: urhead("render", f.avatar, "--out", out / "r"))
+
+
+@case
+def render_full_disk_during_video(f: Fixtures):
+    return full_disk(
+        f,
+        "full_disk_video",
+        lambda out: urhead("render", f.avatar, "--out", out / "r"),
+        room=pngs_and_one_page,
+    )
 
 
 @case
@@ -630,7 +654,7 @@ def reenact_full_disk(f: Fixtures):
         *argv[3:],
     ]
     return Attempt(
-        argv, names="r.mp4", check=half_written_unless_whole(out), broken_after_failure=out
+        argv, names=str(out), check=half_written_unless_whole(out), broken_after_failure=out
     )
 
 

@@ -16,12 +16,14 @@ import os
 import threading
 from collections import OrderedDict
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from urhead._threads import num_threads
 from urhead.camera import Camera
 from urhead.data.images import (
     check_png,
@@ -279,6 +281,7 @@ def load_subject(
     if len(with_normals) > 1:
         raise DatasetError(root / NORMALS_DIR, "normal maps exist for some frames but not all")
     flame = _read_all_flame(sorted({r.flame_path for s in splits.values() for r in s}))
+    _decode_all(splits)
     canonical = None
     if (root / CANONICAL_FLAME).is_file():
         canonical = _read_flame(root / CANONICAL_FLAME)
@@ -444,15 +447,36 @@ def _frame_record(root, path, i, frame, meta, cameras) -> FrameRecord:
 
 
 def _check_png(p: Path, width: int, height: int, channels: tuple[int, ...], what: str) -> None:
-    """The header's size (cheap, the clearer message), then the whole file decoded: a
-    corrupt body is found now, not when the frame is first used (after training, for a
-    held-out frame)."""
+    """The header's size (cheap, the clearer message); the whole file is decoded later,
+    with every other, by :func:`_decode_all`."""
     if not p.is_file():
         raise MissingFileError(p, f"not found ({what})")
     size = png_size(p)
     if size != (width, height):
         raise DatasetError(p, f"is {size[0]}×{size[1]} but the transforms say {width}×{height}")
-    check_png(p, width, height, channels)
+
+
+def _decode_all(splits: dict[str, list[FrameRecord]]) -> None:
+    """Decodes every image, mask and PNG normal map whole and checks its size, bit depth
+    and channels, so a corrupt body is found at open, not when the frame is first used
+    (after training, for a held-out frame). Spread over urhead's threads (OpenCV's
+    decoder releases the GIL); the first failure in file order is raised."""
+    checks = []
+    for records in splits.values():
+        for r in records:
+            size = (r.camera.width, r.camera.height)
+            with_mask = r.mask_path is not None
+            checks.append((r.image_path, *size, (3, 4) if with_mask else (4,)))
+            if with_mask:
+                checks.append((r.mask_path, *size, (1, 3, 4)))
+            if r.normals_path is not None and r.normals_path.suffix == ".png":
+                checks.append((r.normals_path, *size, (3,)))
+    pool = ThreadPoolExecutor(max_workers=min(num_threads(), len(checks) or 1))
+    try:
+        for _ in pool.map(lambda check: check_png(*check), checks):
+            pass
+    finally:
+        pool.shutdown(cancel_futures=True)
 
 
 def _read_flame(path: Path) -> dict:
