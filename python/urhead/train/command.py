@@ -72,9 +72,10 @@ def fit_subject(
         )
     subject = load_subject(subject_dir, test_last=test_last)
     head = load_head(head_path) if head_path is not None else procedural_head(0)
+    trainer = Trainer(subject, head, config, out, progress=progress)  # checks the background
     with folder_lock(out, "--out"):  # created only once the inputs are known to be good
         remove_stale_temporaries(out)
-        result = Trainer(subject, head, config, out, progress=progress).run(resume=resume)
+        result = trainer.run(resume=resume)
         # The trainer records the subject's absolute path; the relative one lets an avatar
         # moved together with its subject find it.
         add_subject_record(result.out / "avatar", subject.root)
