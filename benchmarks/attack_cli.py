@@ -784,10 +784,14 @@ def concurrent_fits(f: Fixtures):
 
 def ctrl_c(f: Fixtures):
     out = f.scratch("ctrl_c")
-    argv = urhead("fit", f.subject, "--out", out, *FIT_ARGS[:-1])
+    argv = urhead("fit", f.subject, "--out", out, *FIT_ARGS[:-1], "--checkpoint-every", "5")
     argv[argv.index("20")] = "100000"
     proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    time.sleep(12)
+    # Interrupted once a checkpoint exists: the message must say how to continue from it.
+    deadline = time.monotonic() + 300
+    while not (out / "checkpoint").is_dir() and time.monotonic() < deadline:
+        time.sleep(0.5)
+    time.sleep(1)
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=120)
     message = [line for line in err.splitlines() if "interrupted" in line]
