@@ -200,9 +200,8 @@ def synthesize(
 
     A folder holding a subject with the same cache key is reused as it is once every file
     matches the manifest written with it (sizes and SHA-256); a damaged one is made
-    again. Any other
-    existing folder is replaced only with ``force`` or when it is an older synthetic
-    subject (it has ``synthetic.json``)."""
+    again. Any other existing folder is replaced only with ``force`` or when it is an
+    older synthetic subject (it has ``synthetic.json``)."""
     from tqdm import tqdm
 
     from urhead.head import procedural_head, save_head
@@ -650,7 +649,7 @@ def _manifest_identity(out: Path) -> tuple[int, int] | None:
 def _key_at(out: Path):
     try:
         return json.loads((out / "synthetic.json").read_text()).get("cache_key")
-    except (OSError, json.JSONDecodeError):
+    except (OSError, ValueError, AttributeError):  # unreadable, not JSON, not an object
         return None
 
 
