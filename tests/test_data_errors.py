@@ -4,6 +4,7 @@ raised when the subject is opened where that is possible."""
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -90,12 +91,26 @@ def test_corrupt_png_header_is_caught_at_load_time(subject_root):
         load_subject(subject_root)
 
 
-def test_truncated_png_fails_when_the_frame_is_decoded(subject_root):
-    path = subject_root / "images" / "00000_00.png"
+@pytest.mark.parametrize("split", ["train", "test"])
+def test_a_corrupt_image_body_fails_at_open(subject_root, split):
+    """A held-out frame is first decoded after training: a corrupt body must be found when
+    the subject is opened, before any work."""
+    name = json.loads((subject_root / f"transforms_{split}.json").read_text())["frames"][-1]
+    path = subject_root / name["file_path"]
     path.write_bytes(path.read_bytes()[:60])  # header intact, pixel data cut
-    subject = load_subject(subject_root)
-    with pytest.raises(DatasetError, match=r"images/00000_00\.png: could not be decoded"):
-        subject.train[0]
+    with pytest.raises(DatasetError, match=re.escape(name["file_path"]) + ": could not be decoded"):
+        load_subject(subject_root)
+
+
+def test_a_gray_image_fails_at_open(subject_root):
+    import cv2
+
+    path = subject_root / "images" / "00001_00.png"
+    cv2.imwrite(str(path), cv2.imread(str(path), cv2.IMREAD_GRAYSCALE))
+    with pytest.raises(
+        DatasetError, match=r"images/00001_00\.png: has 1 channels, expected 3 or 4"
+    ):
+        load_subject(subject_root)
 
 
 def test_wrong_size_normal_map(subject_root):

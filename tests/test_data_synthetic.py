@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 
@@ -120,6 +121,32 @@ def test_cache_reuses_a_matching_subject_and_replaces_a_stale_one(tmp_path, caps
     assert main([*args[:-1], "--frames", "4", "--quiet"]) == 0
     assert json.loads((out / "synthetic.json").read_text())["config"]["frames"] == 4
     assert len(load_subject(out, test_last=1).train) == 3
+
+
+@pytest.mark.parametrize("damage", ["truncate_image", "edit_image", "drop_manifest"])
+def test_cache_remakes_a_damaged_subject(tiny_subject, tmp_path, damage, capsys, caplog):
+    """A cached subject whose files no longer match its manifest is made again, never
+    reused; the CLI says so."""
+    out = tmp_path / "s"
+    shutil.copytree(tiny_subject, out)
+    image = out / "images" / "00001_00.png"
+    if damage == "truncate_image":
+        image.write_bytes(image.read_bytes()[:100])
+    elif damage == "edit_image":  # same size, one byte changed
+        data = bytearray(image.read_bytes())
+        data[-20] ^= 0xFF
+        image.write_bytes(bytes(data))
+    else:
+        (out / "manifest.json").unlink()
+    args = ["synth", "--out", str(out), "--frames", str(TINY.frames), "--quiet"]
+    args += ["--resolution", str(TINY.resolution), "--seed", str(TINY.seed)]
+    args += ["--difficulty", TINY.difficulty, "--samples", "1", "--edge-samples", "2"]
+    assert main(args) == 0
+    assert capsys.readouterr().out.startswith("wrote ")
+    assert "making it again" in caplog.text
+    assert _files(out) == _files(tiny_subject)
+    assert main(args) == 0
+    assert capsys.readouterr().out.startswith("reused (cached) ")
 
 
 def test_refuses_to_replace_a_folder_that_is_not_a_subject(tmp_path):

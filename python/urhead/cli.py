@@ -101,7 +101,7 @@ def main(argv=None) -> int:
     try:
         configure_threads()
         return int(args.run(args) or 0)
-    except (ValueError, TypeError, OSError) as e:  # typed input errors name the argument
+    except (ValueError, TypeError, OSError, MemoryError) as e:  # typed errors name the input
         print(f"urhead {args.command}: error: {e}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import typing
 from dataclasses import dataclass, field, fields, replace
 from typing import Any, Literal
@@ -202,6 +203,10 @@ class FitConfig:
     )
 
     def __post_init__(self):
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, float) and not math.isfinite(value):
+                raise InvalidArgumentError(f"{f.name} must be a finite number, got {value!r}")
         checks = [
             ("iterations", self.iterations >= 1),
             ("uv_resolution", 16 <= self.uv_resolution <= 8192),
@@ -217,6 +222,8 @@ class FitConfig:
             ("refine_steps", self.refine_steps >= 0),
             ("refine_full_steps", self.refine_full_steps >= 0),
             ("prune_opacity", 0 <= self.prune_opacity < 1),
+            ("prune_screen_fraction", self.prune_screen_fraction > 0),
+            ("eval_every_seconds", self.eval_every_seconds >= 0),
             ("depth_eps", self.depth_eps >= 0),
             ("lr_decay_final", 0 < self.lr_decay_final <= 1),
             ("mesh_term", 0 <= self.mesh_term <= 1),

@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 
 from urhead.data.layout import DatasetError, MissingFileError
+from urhead.files import c_library_path, write_bytes
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}  # PNG colour type → channels after decoding
@@ -32,13 +33,39 @@ def png_size(path: Path) -> tuple[int, int]:
     return width, height
 
 
-def read_png(path: Path) -> np.ndarray:
-    """Decoded PNG as (H, W) or (H, W, C) with RGB(A) channel order, float32 in [0, 1]."""
-    if not path.is_file():
-        raise MissingFileError(path, "file not found")
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+def decode_image(path: Path) -> np.ndarray:
+    """The image file at ``path`` decoded by OpenCV as stored (BGR(A) order, uint8 or
+    uint16). The bytes are read by Python, so any path works, valid UTF-8 or not."""
+    try:
+        data = Path(path).read_bytes()
+    except FileNotFoundError:
+        raise MissingFileError(path, "file not found") from None
+    except OSError as e:
+        raise DatasetError(path, f"cannot be read ({e.strerror})") from None
+    raw = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
     if raw is None:
         raise DatasetError(path, "could not be decoded as an image (corrupt or truncated?)")
+    return raw
+
+
+def check_png(path: Path, width: int, height: int, channels: tuple[int, ...]) -> None:
+    """Decodes the PNG at ``path`` whole and checks its size, bit depth (8 or 16) and
+    channel count; a :class:`DatasetError` naming the file otherwise."""
+    raw = decode_image(path)
+    found = 1 if raw.ndim == 2 else raw.shape[2]
+    if raw.dtype not in (np.uint8, np.uint16):
+        raise DatasetError(path, f"unsupported pixel type {raw.dtype} (8 or 16 bits per channel)")
+    if raw.shape[:2] != (height, width):
+        raise DatasetError(path, f"decodes to {raw.shape[1]}×{raw.shape[0]}, not {width}×{height}")
+    if found not in channels:
+        raise DatasetError(
+            path, f"has {found} channels, expected {' or '.join(map(str, channels))}"
+        )
+
+
+def read_png(path: Path) -> np.ndarray:
+    """Decoded PNG as (H, W) or (H, W, C) with RGB(A) channel order, float32 in [0, 1]."""
+    raw = decode_image(path)
     scale = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(raw.dtype)
     if scale is None:
         raise DatasetError(path, f"unsupported pixel type {raw.dtype}")
@@ -51,11 +78,7 @@ def read_png(path: Path) -> np.ndarray:
 
 def read_png_uint8(path: Path) -> np.ndarray:
     """Decoded 8-bit PNG, RGB channel order, as stored (for encoded normal maps)."""
-    if not path.is_file():
-        raise MissingFileError(path, "file not found")
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if raw is None:
-        raise DatasetError(path, "could not be decoded as an image (corrupt or truncated?)")
+    raw = decode_image(path)
     if raw.dtype != np.uint8:
         raise DatasetError(path, f"must be an 8-bit PNG, got {raw.dtype}")
     if raw.ndim == 3 and raw.shape[2] >= 3:
@@ -67,11 +90,17 @@ def write_png(path: Path, pixels: np.ndarray) -> None:
     """Write (H, W) or (H, W, 3) uint8 pixels (RGB order) as a PNG."""
     if pixels.dtype != np.uint8:
         raise TypeError(f"pixels for {path} must be uint8, got {pixels.dtype}")
-    if pixels.ndim == 3:
-        pixels = pixels[..., ::-1]
+    write_bgr_png(path, pixels[..., ::-1] if pixels.ndim == 3 else pixels)
+
+
+def write_bgr_png(path: Path, pixels: np.ndarray) -> None:
+    """Write (H, W) or (H, W, 3|4) uint8 pixels in OpenCV's BGR(A) order as a PNG, encoded
+    in memory and written by Python (any path; a failed write raises ``OSError``)."""
     # Compression level 1: several times faster than the default at ~10 % larger files.
-    if not cv2.imwrite(str(path), np.ascontiguousarray(pixels), [cv2.IMWRITE_PNG_COMPRESSION, 1]):
-        raise OSError(f"{path}: could not be written")
+    ok, data = cv2.imencode(".png", np.ascontiguousarray(pixels), [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    if not ok:
+        raise ValueError(f"{path}: OpenCV cannot encode pixels of shape {pixels.shape} as PNG")
+    write_bytes(path, data.tobytes())
 
 
 def to_uint8(values: np.ndarray) -> np.ndarray:
@@ -87,7 +116,7 @@ def exr_size(path: Path) -> tuple[int, int]:
     if not path.is_file():
         raise MissingFileError(path, "file not found")
     try:
-        with OpenEXR.File(str(path), header_only=True) as f:
+        with c_library_path(path, "r") as name, OpenEXR.File(name, header_only=True) as f:
             (x0, y0), (x1, y1) = f.header()["dataWindow"]
     except (RuntimeError, KeyError, ValueError) as e:
         raise DatasetError(path, f"not a readable EXR file ({e})") from None
@@ -101,7 +130,7 @@ def read_exr_rgb(path: Path) -> np.ndarray:
     if not path.is_file():
         raise MissingFileError(path, "file not found")
     try:
-        with OpenEXR.File(str(path), separate_channels=True) as f:
+        with c_library_path(path, "r") as name, OpenEXR.File(name, separate_channels=True) as f:
             channels = {name: c.pixels for name, c in f.channels().items()}
     except RuntimeError as e:
         raise DatasetError(path, f"not a readable EXR file ({e})") from None

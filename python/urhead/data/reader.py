@@ -1,27 +1,38 @@
 """Reading a subject in the VHAP / GaussianAvatars layout (see :mod:`urhead.data.layout`).
 
-Everything cheap is checked when the subject is opened: the JSON files and every key the
-reader needs, the existence and PNG header (size) of every referenced image, mask and
-normal map, and every FLAME parameter file (they are small and loaded whole). Images are
-decoded lazily, when a frame is indexed, through a bounded LRU cache shared by the splits.
+Everything is checked when the subject is opened: the JSON files and every key the reader
+needs, every referenced image, mask and normal map (decoded whole once: size, bit depth,
+channels, an intact body) and every FLAME parameter file (they are small and loaded
+whole). The pixels are then decoded again when a frame is indexed, through a bounded LRU
+cache shared by the splits.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
 import threading
 from collections import OrderedDict
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from urhead._threads import num_threads
 from urhead.camera import Camera
-from urhead.data.images import exr_size, png_size, read_exr_rgb, read_png, read_png_uint8
+from urhead.data.images import (
+    check_png,
+    exr_size,
+    png_size,
+    read_exr_rgb,
+    read_png,
+    read_png_uint8,
+)
 from urhead.data.layout import (
     CANONICAL_FLAME,
     FLAME_OPTIONAL_SHAPES,
@@ -136,6 +147,20 @@ class Subject:
         self._cache: OrderedDict[Path, Frame] = OrderedDict()
         self._cache_size = cache_size
         self._lock = threading.Lock()
+
+    def fingerprint(self) -> str:
+        """SHA-256 (hex) of what a fit depends on besides the pixels: every split's
+        timesteps, cameras and FLAME parameters. A checkpoint records it, so resuming with
+        another subject (or another tracking of it) is recognised."""
+        digest = hashlib.sha256()
+        for split in (self.train, self.val, self.test):
+            for r in split.records:
+                digest.update(f"{split.name} {r.timestep} {r.camera_index}".encode())
+                digest.update(r.camera.K.numpy().tobytes() + r.camera.viewmat.numpy().tobytes())
+                digest.update(f"{r.camera.width}x{r.camera.height}".encode())
+                for key, value in sorted(self.flame[r.flame_path].items()):
+                    digest.update(key.encode() + np.ascontiguousarray(value).tobytes())
+        return digest.hexdigest()
 
     def __repr__(self) -> str:
         return (
@@ -256,6 +281,7 @@ def load_subject(
     if len(with_normals) > 1:
         raise DatasetError(root / NORMALS_DIR, "normal maps exist for some frames but not all")
     flame = _read_all_flame(sorted({r.flame_path for s in splits.values() for r in s}))
+    _decode_all(splits)
     canonical = None
     if (root / CANONICAL_FLAME).is_file():
         canonical = _read_flame(root / CANONICAL_FLAME)
@@ -359,6 +385,15 @@ def _frame_record(root, path, i, frame, meta, cameras) -> FrameRecord:
         raise DatasetError(path, f"{where}.transform_matrix must hold numbers") from None
     if not np.all(np.isfinite(c2w)):
         raise DatasetError(path, f"{where}.transform_matrix must be finite")
+    rotation = c2w[:3, :3]
+    # A camera pose is rigid: a scaled or sheared matrix would move every pixel's ray.
+    rigid = np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-4) and np.linalg.det(rotation) > 0
+    if not rigid or not np.allclose(c2w[3], (0, 0, 0, 1), atol=1e-6):
+        raise DatasetError(
+            path,
+            f"{where}.transform_matrix is not a rigid camera pose (its 3×3 part must be a "
+            "rotation and its last row 0 0 0 1)",
+        )
     key = (c2w.tobytes(), intrinsics, width, height)
     if key not in cameras:
         try:
@@ -381,12 +416,14 @@ def _frame_record(root, path, i, frame, meta, cameras) -> FrameRecord:
         raise MissingFileError(
             flame_path, f"not found (flame_param_path of {where} in {path.name})"
         )
-    for p, what in ((image_path, "file_path"), (mask_path, "fg_mask_path")):
-        if p is not None:
-            _check_png(p, width, height, f"{what} of {where} in {path.name}")
+    # The image's alpha is the mask when there is no mask file.
+    image_channels = (3, 4) if mask_path is not None else (4,)
+    _check_png(image_path, width, height, image_channels, f"file_path of {where} in {path.name}")
+    if mask_path is not None:
+        _check_png(mask_path, width, height, (1, 3, 4), f"fg_mask_path of {where} in {path.name}")
     normals_path = root / NORMALS_DIR / (image_path.stem + ".png")
     if normals_path.is_file():
-        _check_png(normals_path, width, height, f"normal map of {where} in {path.name}")
+        _check_png(normals_path, width, height, (3,), f"normal map of {where} in {path.name}")
     elif normals_path.with_suffix(".exr").is_file():
         normals_path = normals_path.with_suffix(".exr")
         size = exr_size(normals_path)
@@ -409,12 +446,37 @@ def _frame_record(root, path, i, frame, meta, cameras) -> FrameRecord:
     )
 
 
-def _check_png(p: Path, width: int, height: int, what: str) -> None:
+def _check_png(p: Path, width: int, height: int, channels: tuple[int, ...], what: str) -> None:
+    """The header's size (cheap, the clearer message); the whole file is decoded later,
+    with every other, by :func:`_decode_all`."""
     if not p.is_file():
         raise MissingFileError(p, f"not found ({what})")
     size = png_size(p)
     if size != (width, height):
         raise DatasetError(p, f"is {size[0]}×{size[1]} but the transforms say {width}×{height}")
+
+
+def _decode_all(splits: dict[str, list[FrameRecord]]) -> None:
+    """Decodes every image, mask and PNG normal map whole and checks its size, bit depth
+    and channels, so a corrupt body is found at open, not when the frame is first used
+    (after training, for a held-out frame). Spread over urhead's threads (OpenCV's
+    decoder releases the GIL); the first failure in file order is raised."""
+    checks = []
+    for records in splits.values():
+        for r in records:
+            size = (r.camera.width, r.camera.height)
+            with_mask = r.mask_path is not None
+            checks.append((r.image_path, *size, (3, 4) if with_mask else (4,)))
+            if with_mask:
+                checks.append((r.mask_path, *size, (1, 3, 4)))
+            if r.normals_path is not None and r.normals_path.suffix == ".png":
+                checks.append((r.normals_path, *size, (3,)))
+    pool = ThreadPoolExecutor(max_workers=min(num_threads(), len(checks) or 1))
+    try:
+        for _ in pool.map(lambda check: check_png(*check), checks):
+            pass
+    finally:
+        pool.shutdown(cancel_futures=True)
 
 
 def _read_flame(path: Path) -> dict:

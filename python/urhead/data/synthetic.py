@@ -12,7 +12,8 @@ exact parameters). The difficulty presets supply them unless given explicitly.
 
 Also written: ``head.npz`` (the head model the FLAME parameters refer to),
 ``synthetic_ground_truth.npz`` (the exact parameters), ``synthetic.json`` (settings, the
-cache key). ``urhead synth --out DIR`` reuses ``DIR`` when its cache key matches.
+cache key), ``manifest.json`` (every file's size and SHA-256, written last). ``urhead synth
+--out DIR`` reuses ``DIR`` when its cache key matches and its files match the manifest.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import logging
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -30,6 +32,7 @@ import torch
 
 from urhead.camera import Camera
 from urhead.data.background import parse_background
+from urhead.data.manifest import MANIFEST, manifest_problem, write_manifest
 from urhead.data.subdivision import vertex_normals
 from urhead.data.synth_motion import FPS, MOTIONS, performance, tracking_noise
 from urhead.data.synth_scene import HAIR_MODES, MATERIALS, Strands, SubjectLook, build_look
@@ -38,6 +41,8 @@ from urhead.raytrace import Light, TriangleBvh, raytrace
 
 GENERATOR_VERSION = 3
 """Bump when the generator's output changes: it is part of the cache key."""
+
+log = logging.getLogger("urhead.synth")
 
 HEAD_SEED = 0
 """The subjects use the default built-in head (``procedural_head(0)``), as the fit does."""
@@ -206,9 +211,10 @@ def synthesize(
 ) -> Path:
     """Make (or reuse) the synthetic subject ``config`` at ``out``; returns ``out``.
 
-    A folder holding a subject with the same cache key is reused as it is. Any other
-    existing folder is replaced only with ``force`` or when it is an older synthetic
-    subject (it has ``synthetic.json``)."""
+    A folder holding a subject with the same cache key is reused as it is once every file
+    matches the manifest written with it (sizes and SHA-256); a damaged one is made
+    again. Any other existing folder is replaced only with ``force`` or when it is an
+    older synthetic subject (it has ``synthetic.json``)."""
     from tqdm import tqdm
 
     from urhead.head import procedural_head, save_head
@@ -218,12 +224,11 @@ def synthesize(
     config = config.resolved()
     key = config.cache_key()
     meta_path = out / "synthetic.json"
-    if meta_path.is_file():
-        try:
-            if json.loads(meta_path.read_text()).get("cache_key") == key:
-                return out
-        except (OSError, json.JSONDecodeError):
-            pass
+    if _key_at(out) == key:
+        problem = manifest_problem(out)
+        if problem is None:
+            return out
+        log.warning("%s: the cached subject is damaged (%s); making it again", out, problem)
     if out.exists() and not (force or meta_path.is_file()):
         raise FileExistsError(
             f"{out}: exists and is not a synthetic subject (pass force=True / --force)"
@@ -328,6 +333,7 @@ def synthesize(
             "normals": "normals/*.png: OpenCV camera-space unit normals, see urhead.data.layout",
         }
         (writer.staging / "synthetic.json").write_text(json.dumps(meta, indent=1))
+        write_manifest(writer.staging)
     return out
 
 
@@ -647,9 +653,11 @@ def add_parser(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     config = config_from_args(args)
-    before = _key_at(Path(args.out))
+    before = _manifest_identity(Path(args.out))
     out = synthesize(args.out, config, progress=not args.quiet, force=args.force)
-    state = "reused (cached)" if before == config.cache_key() else "wrote"
+    # A subject made (again) is a new folder with a new manifest file.
+    reused = before is not None and before == _manifest_identity(out)
+    state = "reused (cached)" if reused else "wrote"
     size = f"{config.resolution}×{config.resolution}"
     print(
         f"{state} {out}: {config.frames} frames at {size}, difficulty {config.difficulty} "
@@ -685,10 +693,18 @@ def _preset_values(condition: str) -> str:
     return ", ".join(f"{name}: {preset[condition]}" for name, preset in DIFFICULTIES.items())
 
 
+def _manifest_identity(out: Path) -> tuple[int, int] | None:
+    try:
+        stat = (out / MANIFEST).stat()
+    except OSError:
+        return None
+    return stat.st_ino, stat.st_mtime_ns
+
+
 def _key_at(out: Path):
     try:
         return json.loads((out / "synthetic.json").read_text()).get("cache_key")
-    except (OSError, json.JSONDecodeError):
+    except (OSError, ValueError, AttributeError):  # unreadable, not JSON, not an object
         return None
 
 

@@ -8,7 +8,6 @@ import json
 import math
 import os
 import shutil
-import uuid
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +28,7 @@ from urhead.data.layout import (
     flame_file,
     frame_stem,
 )
+from urhead.files import commit_folder, temporary_folder
 
 
 def opengl_c2w(camera: Camera) -> np.ndarray:
@@ -77,7 +77,7 @@ class SubjectWriter:
         self.overwrite = overwrite
         self.test_last = test_last
         self.root.parent.mkdir(parents=True, exist_ok=True)
-        self._tmp = self.root.parent / f".{self.root.name}.partial-{uuid.uuid4().hex[:8]}"
+        self._tmp = temporary_folder(self.root)
         for sub in (IMAGES_DIR, MASKS_DIR, FLAME_DIR):
             (self._tmp / sub).mkdir(parents=True)
         self._frames: list[dict] = []
@@ -173,13 +173,7 @@ class SubjectWriter:
         num_train = num - self.test_last if self.test_last is not None else vhap_train_count(num)
         for name, meta in vhap_split_files(self._frames, num_train, self._intrinsics()).items():
             (self._tmp / name).write_text(json.dumps(meta, indent=4))
-        old = None
-        if self.root.exists():
-            old = self.root.parent / f".{self.root.name}.old-{uuid.uuid4().hex[:8]}"
-            os.replace(self.root, old)
-        os.replace(self._tmp, self.root)
-        if old is not None:
-            shutil.rmtree(old)
+        commit_folder(self._tmp, self.root)
         self._done = True
         return self.root
 

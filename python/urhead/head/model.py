@@ -8,15 +8,23 @@ head) or from :func:`load_head` (our ``.npz``). Everything downstream reads only
 
 from __future__ import annotations
 
+import hashlib
 import os
-import tempfile
 from dataclasses import dataclass, fields
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 import torch
 
-from urhead.errors import DTypeError, IndexRangeError, InvalidArgumentError, ShapeError
+from urhead.errors import (
+    DTypeError,
+    IndexRangeError,
+    InvalidArgumentError,
+    ShapeError,
+    reading,
+)
+from urhead.files import write_file_atomically
 
 FORMAT_VERSION = 1
 """Version of the ``.npz`` head format written by :func:`save_head`."""
@@ -217,44 +225,51 @@ def save_head(head: HeadModel, path: str | os.PathLike) -> None:
     arrays["num_shape"] = np.int32(head.num_shape)
     arrays["num_expr"] = np.int32(head.num_expr)
     arrays["format_version"] = np.int32(FORMAT_VERSION)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_file_atomically(path, lambda tmp: np.savez(tmp, **arrays))
 
 
-def load_head(path: str | os.PathLike) -> HeadModel:
+def load_head(path: str | os.PathLike, file: BinaryIO | None = None) -> HeadModel:
     """Read a head written by :func:`save_head`. ``j_regressor`` may be stored dense or as
     CSR (``j_regressor_data``, ``j_regressor_indices``, ``j_regressor_indptr``,
     ``j_regressor_shape``). Raises :class:`~urhead.errors.ShapeError` /
-    :class:`~urhead.errors.InvalidArgumentError` naming the bad key."""
-    with np.load(Path(path), allow_pickle=False) as z:
-        keys = set(z.files)
-        if "format_version" not in keys:
-            raise InvalidArgumentError(f"{path}: not a urhead head file (no format_version)")
-        version = int(z["format_version"])
-        if version != FORMAT_VERSION:
-            raise InvalidArgumentError(
-                f"{path}: format_version {version} is not supported (expected {FORMAT_VERSION})"
-            )
-        values = {}
-        for name in (*_FLOAT_KEYS, *_INT_KEYS, "num_shape", "num_expr"):
-            if name == "j_regressor" and name not in keys:
-                values[name] = _csr_from_file(z, keys)
-                continue
-            if name not in keys:
-                raise InvalidArgumentError(f"{path}: missing key {name!r}")
-            values[name] = z[name]
-    for name in ("num_shape", "num_expr"):
-        if values[name].shape != ():
-            raise ShapeError(f"{name} must be a scalar, got shape {values[name].shape}")
-        values[name] = int(values[name])
-    return HeadModel(**values)
+    :class:`~urhead.errors.InvalidArgumentError` naming the file and the bad key, a
+    :class:`~urhead.errors.CorruptFileError` for a damaged file. ``file``: the file
+    already open (``path`` then only names it)."""
+    with reading(path, "urhead head (.npz)"):
+        with np.load(Path(path) if file is None else file, allow_pickle=False) as z:
+            keys = set(z.files)
+            if "format_version" not in keys:
+                raise InvalidArgumentError(f"{path}: not a urhead head file (no format_version)")
+            version = int(z["format_version"])
+            if version != FORMAT_VERSION:
+                raise InvalidArgumentError(
+                    f"{path}: format_version {version} is not supported (expected {FORMAT_VERSION})"
+                )
+            values = {}
+            for name in (*_FLOAT_KEYS, *_INT_KEYS, "num_shape", "num_expr"):
+                if name == "j_regressor" and name not in keys:
+                    values[name] = _csr_from_file(z, keys)
+                    continue
+                if name not in keys:
+                    raise InvalidArgumentError(f"{path}: missing key {name!r}")
+                values[name] = z[name]
+        for name in ("num_shape", "num_expr"):
+            if values[name].shape != ():
+                raise ShapeError(f"{name} must be a scalar, got shape {values[name].shape}")
+            values[name] = int(values[name])
+        return HeadModel(**values)
+
+
+def head_fingerprint(head: HeadModel) -> str:
+    """SHA-256 of every array of ``head`` (hex): recorded with an avatar and a checkpoint
+    so another head is recognised."""
+    digest = hashlib.sha256()
+    for name in (*_FLOAT_KEYS, *_INT_KEYS):
+        a = np.ascontiguousarray(getattr(head, name))
+        digest.update(f"{name}{a.dtype.str}{a.shape}".encode())
+        digest.update(a.tobytes())
+    digest.update(f"{head.num_shape},{head.num_expr}".encode())
+    return digest.hexdigest()
 
 
 _FLOAT_KEYS = (
@@ -286,8 +301,8 @@ def _csr_from_file(z, keys) -> np.ndarray:
         )
     if data.size and (indices.min() < 0 or indices.max() >= cols):
         raise IndexRangeError(f"j_regressor_indices must be in [0, {cols})")
-    if np.any(np.diff(indptr) < 0):
-        raise InvalidArgumentError("j_regressor_indptr must be non-decreasing")
+    if indptr[0] != 0 or np.any(np.diff(indptr) < 0):
+        raise InvalidArgumentError("j_regressor_indptr must start at 0 and be non-decreasing")
     dense = np.zeros((rows, cols), np.float32)
     row_of = np.repeat(np.arange(rows), np.diff(indptr))
     np.add.at(dense, (row_of, indices), data)

@@ -19,7 +19,8 @@ allow-list:
   is under ``x``), and a stub for scipy's compressed sparse classes under any path, rebuilt
   as a modern ``csc_matrix`` / ``csr_matrix`` once its parts are checked.
 
-Anything else is refused with :class:`pickle.UnpicklingError`.
+Anything else is refused with :class:`urhead.errors.UnsafePickleError` (a
+:class:`pickle.UnpicklingError`).
 """
 
 from __future__ import annotations
@@ -30,6 +31,8 @@ import pickle
 
 import numpy as np
 import scipy.sparse
+
+from urhead.errors import UnsafePickleError, reading
 
 _RENAMED_MODULES = {"copy_reg": "copyreg", "__builtin__": "builtins"}
 _DATA_BUILTINS = {"set": set, "frozenset": frozenset, "complex": complex, "object": object}
@@ -170,18 +173,19 @@ class FlameUnpickler(pickle.Unpickler):
             return copyreg._reconstructor
         if module == "_codecs" and name == "encode":  # bytes in Python 3 protocol-2 pickles
             return codecs.encode
-        raise pickle.UnpicklingError(f"refusing to load {module}.{name} from a FLAME pickle")
+        raise UnsafePickleError(f"refusing to load {module}.{name} from a FLAME pickle")
 
 
 def load_flame_pickle(path) -> dict:
     """The FLAME pickle at ``path`` as a dict of plain numpy arrays and scipy sparse
     matrices (chumpy objects replaced by their arrays; a chumpy expression without an
     array stays a :class:`ChumpyStub`)."""
-    with open(path, "rb") as f:
-        raw = FlameUnpickler(f).load()
-    if not isinstance(raw, dict):
-        raise pickle.UnpicklingError(f"{path}: expected a dict, got {type(raw).__name__}")
-    return {str(k): to_plain(v) for k, v in raw.items()}
+    with reading(path, "FLAME pickle"):
+        with open(path, "rb") as f:
+            raw = FlameUnpickler(f).load()
+        if not isinstance(raw, dict):
+            raise pickle.UnpicklingError(f"expected a dict, got {type(raw).__name__}")
+        return {str(k): to_plain(v) for k, v in raw.items()}
 
 
 def to_plain(value):

@@ -10,7 +10,9 @@ from pathlib import Path
 
 import torch
 
-from urhead.model.io import load_avatar, write_avatar_files, write_directory_atomically
+from urhead.errors import reading
+from urhead.files import write_directory_atomically
+from urhead.model.io import load_avatar, write_avatar_files
 
 CHECKPOINT_DIR = "checkpoint"
 
@@ -41,7 +43,8 @@ def find_checkpoint(out: Path) -> Path | None:
 def load_checkpoint(path: Path):
     """``(avatar, state)`` from a checkpoint directory."""
     avatar = load_avatar(path)
-    state = torch.load(path / "state.pt", weights_only=True)
+    with reading(path / "state.pt", "checkpoint state"):
+        state = torch.load(path / "state.pt", weights_only=True)
     return avatar, state
 
 

@@ -7,6 +7,7 @@ import logging
 from pathlib import Path
 
 from urhead.config import FIT_PRESETS, FitConfig, add_arguments, from_arguments
+from urhead.errors import InvalidArgumentError
 
 
 def add_fit_options(p: argparse.ArgumentParser) -> None:
@@ -46,21 +47,38 @@ def fit_subject(
     head_path: Path | None = None,
     test_last: int | None = None,
     resume: bool = False,
+    force: bool = False,
     progress: bool = True,
 ):
     """One fit of the subject in ``subject_dir`` into ``out``: what ``urhead fit`` runs, and
-    what each ``fit-many`` task runs. Returns the trainer's ``FitResult``."""
+    what each ``fit-many`` task runs. Returns the trainer's ``FitResult``. Everything is
+    checked before the work: the memory the maps need, ``out`` free of another running fit
+    (locked for this one) and of a finished fit (unless ``resume`` or ``force``), the
+    subject and the head."""
     from urhead.data import load_subject
+    from urhead.files import folder_lock, remove_stale_temporaries
     from urhead.head import load_head, procedural_head
+    from urhead.train.memory import check_fit_memory
     from urhead.train.trainer import Trainer
     from urhead.use.common import add_subject_record
 
+    check_fit_memory(config)
+    out = Path(out)
+    finished = out / "avatar" / "avatar.json"
+    if finished.is_file() and not (resume or force):
+        raise InvalidArgumentError(
+            f"--out {out}: holds a finished fit ({finished.parent}); pass --force to "
+            "replace it, or choose another --out"
+        )
     subject = load_subject(subject_dir, test_last=test_last)
     head = load_head(head_path) if head_path is not None else procedural_head(0)
-    result = Trainer(subject, head, config, out, progress=progress).run(resume=resume)
-    # The trainer records the subject's absolute path; the relative one lets an avatar
-    # moved together with its subject find it.
-    add_subject_record(result.out / "avatar", subject.root)
+    trainer = Trainer(subject, head, config, out, progress=progress)  # checks the background
+    with folder_lock(out, "--out"):  # created only once the inputs are known to be good
+        remove_stale_temporaries(out)
+        result = trainer.run(resume=resume)
+        # The trainer records the subject's absolute path; the relative one lets an avatar
+        # moved together with its subject find it.
+        add_subject_record(result.out / "avatar", subject.root)
     return result
 
 
@@ -76,6 +94,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.add_argument(
         "--resume", action="store_true", help="continue from DIR/checkpoint if there is one"
+    )
+    p.add_argument(
+        "--force", action="store_true", help="replace a finished fit in DIR (else an error)"
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_fit_options(p)
@@ -105,6 +126,7 @@ def run(args: argparse.Namespace) -> int:
             head_path=args.head,
             test_last=args.test_last,
             resume=args.resume,
+            force=args.force,
             progress=not args.quiet,
         )
     m = result.metrics

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
+
+from urhead.files import write_bytes_atomically
 
 
 def plot_psnr_vs_time(history: list, path: Path, title: str) -> None:
@@ -29,7 +32,7 @@ def plot_psnr_vs_time(history: list, path: Path, title: str) -> None:
     ax.set_title(title, fontsize=9)
     ax.grid(True, alpha=0.3)
     fig.tight_layout()
-    tmp = path.with_name(path.name + ".tmp.png")
-    fig.savefig(tmp, dpi=120)
+    image = io.BytesIO()
+    fig.savefig(image, dpi=120, format="png")
     plt.close(fig)
-    tmp.replace(path)
+    write_bytes_atomically(path, image.getvalue())

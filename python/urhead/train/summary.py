@@ -9,7 +9,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from urhead.config import FitConfig
-from urhead.use.common import write_file_atomically
+from urhead.files import write_file_atomically
 
 SUMMARY = "summary.json"
 

@@ -10,6 +10,7 @@ runs with different logging settings compare.
 from __future__ import annotations
 
 import csv
+import io
 import json
 import logging
 import math
@@ -24,9 +25,12 @@ import torch.nn.functional as F
 from urhead.config import FitConfig
 from urhead.data.background import subject_background
 from urhead.eval import RefineSettings, evaluate_frames
+from urhead.files import write_bytes_atomically
+from urhead.head import head_fingerprint
 from urhead.losses import psnr
 from urhead.model import ErrorAccumulator, UvSurface, build_avatar, save_avatar, set_gaussians
 from urhead.model.avatar import Avatar, Render
+from urhead.model.io import add_to_description
 from urhead.ops import TextureGather, texture
 from urhead.optim import SparseAdam
 from urhead.train.checkpoint import (
@@ -121,6 +125,8 @@ class Trainer:
         check_metres(subject, head)
         requested = None if config.background == "auto" else config.background
         self.background = subject_background(subject, requested)
+        # Recorded in checkpoints: resuming with another subject or head is refused.
+        self.inputs = {"subject": subject.fingerprint(), "head": head_fingerprint(head)}
 
     # --- set-up --------------------------------------------------------------------
 
@@ -212,6 +218,7 @@ class Trainer:
                     f"{checkpoint}: was written with a different configuration; "
                     "resume with the same options or start a new --out"
                 )
+            self._check_resumed_inputs(checkpoint, avatar, saved.get("inputs"))
             log.info("resuming from %s at iteration %d", checkpoint, saved["iteration"])
         else:
             avatar, saved = self._new_state()
@@ -323,8 +330,32 @@ class Trainer:
         state.guard.settle(state.iteration)
         return self._finish(state.avatar, state.seconds, state.history, state.guard.events)
 
+    def _check_resumed_inputs(self, checkpoint: Path, avatar: Avatar, saved: dict | None):
+        """Refuses a checkpoint of another subject or head. One written before checkpoints
+        recorded their inputs (``saved`` None) is checked on what it holds: its head and
+        its training timesteps."""
+        if saved is None:
+            log.warning(
+                "%s: an older checkpoint without the subject's fingerprint; checked: the head "
+                "and the training timesteps",
+                checkpoint,
+            )
+            timesteps = [r.timestep for r in self.subject.train.records]
+            same_frames = avatar.timesteps.tolist() == timesteps
+            saved = {
+                "head": head_fingerprint(avatar.head),
+                "subject": self.inputs["subject"] if same_frames else None,
+            }
+        for key, option in (("subject", f"subject {self.subject.root}"), ("head", "--head")):
+            if saved.get(key) != self.inputs[key]:
+                raise ValueError(
+                    f"{checkpoint}: was written for another {key} than {option}; "
+                    "resume with the same subject and --head or start a new --out"
+                )
+
     def _checkpoint_state(self, state: FitState) -> dict:
         return {
+            "inputs": self.inputs,
             "iteration": state.iteration,
             "seconds": state.seconds,
             "history": list(state.history),
@@ -368,6 +399,12 @@ class Trainer:
         c = self.config
         avatar.maps.requires_grad_(False)
         avatar.frame_params.requires_grad_(False)
+        recorded = {
+            "subject": str(Path(self.subject.root).resolve()),
+            "camera": self.subject.train.records[0].camera.to_dict(),
+        }
+        # Written before the final evaluation, so a failure there never loses the fit.
+        save_avatar(avatar, self.out / "avatar", extra={"config": asdict(c), **recorded})
         held_out = list(self.held_out)
         refine = RefineSettings(steps=c.refine_steps, full_steps=c.refine_full_steps)
         tick = time.perf_counter()
@@ -426,15 +463,7 @@ class Trainer:
         }
         if stlpips_note is not None:
             metrics["stlpips_skipped"] = stlpips_note
-        recorded = {
-            "subject": str(Path(self.subject.root).resolve()),
-            "camera": self.subject.train.records[0].camera.to_dict(),
-        }
-        save_avatar(
-            avatar,
-            self.out / "avatar",
-            extra={"config": asdict(c), "metrics": metrics, **recorded},
-        )
+        add_to_description(self.out / "avatar", {"metrics": metrics})
         _write_history(self.out / PSNR_CSV, history)
         plot_psnr_vs_time(history, self.out / "psnr_vs_time.png", title=_title(c, avatar))
         _atomic_text(self.out / "metrics.json", json.dumps(metrics, indent=2))
@@ -450,18 +479,15 @@ def _title(c: FitConfig, avatar: Avatar) -> str:
 
 
 def _write_history(path: Path, history: list) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w", newline="") as f:
-        writer = csv.writer(f)
-        writer.writerow(["seconds", "iteration", "psnr"])
-        writer.writerows(history)
-    tmp.replace(path)
+    rows = io.StringIO(newline="")
+    writer = csv.writer(rows)
+    writer.writerow(["seconds", "iteration", "psnr"])
+    writer.writerows(history)
+    write_bytes_atomically(path, rows.getvalue().encode())
 
 
 def _atomic_text(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
+    write_bytes_atomically(path, text.encode())
 
 
 def _progress(total: int, initial: int, enabled: bool, desc: str = "fit"):

@@ -3,7 +3,6 @@ the camera to render from, and writing output files atomically."""
 
 from __future__ import annotations
 
-import json
 import os
 import re
 from dataclasses import dataclass
@@ -14,7 +13,8 @@ import torch
 
 from urhead.camera import Camera
 from urhead.errors import InvalidArgumentError
-from urhead.model import Avatar, load_avatar
+from urhead.model import Avatar
+from urhead.model.io import add_to_description, load_avatar_and_description
 
 
 @dataclass
@@ -35,9 +35,7 @@ def open_avatar(path: Path) -> OpenedAvatar:
     path = Path(path)
     if not path.is_dir():
         raise FileNotFoundError(f"AVATAR {path}: no such directory (pass the fit's OUT/avatar)")
-    avatar = load_avatar(path)
-    meta = json.loads((path / "avatar.json").read_text())
-    return OpenedAvatar(avatar, meta, path)
+    return OpenedAvatar(*load_avatar_and_description(path), path)
 
 
 def open_subject(opened: OpenedAvatar, subject: Path | None, *, required: bool = True):
@@ -85,10 +83,7 @@ def subject_record(avatar_dir: Path, subject_root: Path) -> dict:
 
 def add_subject_record(avatar_dir: Path, subject_root: Path) -> None:
     """Adds :func:`subject_record` to an avatar's avatar.json (rewritten atomically)."""
-    meta_path = Path(avatar_dir) / "avatar.json"
-    meta = json.loads(meta_path.read_text())
-    meta.update(subject_record(avatar_dir, subject_root))
-    write_file_atomically(meta_path, lambda tmp: tmp.write_text(json.dumps(meta, indent=2)))
+    add_to_description(avatar_dir, subject_record(avatar_dir, subject_root))
 
 
 def add_background_option(parser) -> None:
@@ -216,24 +211,6 @@ def check_output_file(path: Path, option: str, suffix: str) -> Path:
     if path.is_dir():
         raise InvalidArgumentError(f"{option} {path}: is a directory")
     return path
-
-
-def temporary_sibling(path: Path) -> Path:
-    """A hidden name next to ``path`` with the same suffix (writers pick formats by it)."""
-    return path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
-
-
-def write_file_atomically(path: Path, write) -> None:
-    """Calls ``write(tmp_path)``, flushes the file to disk, then renames it into place."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = temporary_sibling(path)
-    try:
-        write(tmp)
-        with open(tmp, "rb+") as f:
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
 
 
 def to_uint8(image: torch.Tensor) -> np.ndarray:

@@ -41,6 +41,7 @@ from urhead._progress import progress as progress_bar
 from urhead._progress import tracked
 from urhead.eval import RefineSettings, evaluate_frames, refine_params_of
 from urhead.eval.metrics import frame_params
+from urhead.files import write_file_atomically
 from urhead.losses import psnr, ssim
 from urhead.use.common import (
     add_background_option,
@@ -49,7 +50,6 @@ from urhead.use.common import (
     open_subject,
     split_frames,
     use_background,
-    write_file_atomically,
 )
 
 

@@ -31,8 +31,9 @@ import numpy as np
 import torch
 
 from urhead._progress import tracked
+from urhead.data.images import write_bgr_png
+from urhead.files import write_directory_atomically
 from urhead.model import Avatar
-from urhead.model.io import write_directory_atomically
 from urhead.sh import SH_C0
 from urhead.use.common import (
     OpenedAvatar,
@@ -181,13 +182,10 @@ def dc_texture(avatar: Avatar) -> np.ndarray:
 
 
 def write_mesh_frames(opened: OpenedAvatar, subject, timesteps: list[int], folder: Path) -> None:
-    import cv2
-
     avatar = opened.avatar
     head = avatar.head
     rgb = (dc_texture(avatar) * 255 + 0.5).astype(np.uint8)
-    if not cv2.imwrite(str(folder / "texture.png"), rgb[..., ::-1]):
-        raise OSError(f"{folder}: cannot write texture.png")
+    write_bgr_png(folder / "texture.png", rgb[..., ::-1])
     (folder / "material.mtl").write_text(
         "newmtl avatar\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nillum 1\nmap_Kd texture.png\n"
     )
@@ -224,8 +222,6 @@ def write_glb_frames(opened: OpenedAvatar, subject, timesteps: list[int], folder
 
 
 def write_maps(opened: OpenedAvatar, folder: Path, half: bool = False) -> None:
-    import cv2
-
     avatar = opened.avatar
     layout = avatar.layout
     maps = avatar.maps.detach().numpy()
@@ -252,8 +248,7 @@ def write_maps(opened: OpenedAvatar, folder: Path, half: bool = False) -> None:
         pixels = (np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)
         if pixels.ndim == 3:
             pixels = pixels[..., ::-1]
-        if not cv2.imwrite(str(folder / name), pixels):
-            raise OSError(f"{folder}: cannot write {name}")
+        write_bgr_png(folder / name, pixels)
     description = {
         "orientation": "image row 0 is v = 1 (OBJ texture convention)",
         "color.exr": "layer shKK (channels shKK.R, .G, .B): SH coefficient k (3DGS basis, "

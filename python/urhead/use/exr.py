@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from urhead.errors import InvalidArgumentError, ShapeError
+from urhead.files import c_library_path
 
 _CHANNEL_NAMES = {1: "Y", 2: "RG", 3: "RGB", 4: "RGBA"}
 
@@ -39,5 +40,5 @@ def write_exr(path: Path, channels: dict[str, np.ndarray], *, half: bool = False
         if plane.ndim != 2 or plane.shape != shape:
             raise ShapeError(f"{path}: channel {name!r} is {plane.shape}, expected {shape}")
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    with OpenEXR.File(header, planes) as f:
-        f.write(str(path))
+    with OpenEXR.File(header, planes) as f, c_library_path(path, "w") as name:
+        f.write(name)

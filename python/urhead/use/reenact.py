@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from urhead._progress import tracked
-from urhead.errors import InvalidArgumentError, ShapeError
+from urhead.errors import InvalidArgumentError, ShapeError, reading
 from urhead.model.avatar import POSE_SIZE, FlameParams
 from urhead.use.common import (
     avatar_camera,
@@ -102,7 +102,7 @@ def load_driver(path: Path) -> dict[str, np.ndarray]:
     elif path.is_file():
         if path.suffix != ".npz":
             raise InvalidArgumentError(f"--driver {path}: must be a subject folder or an .npz")
-        with np.load(path, allow_pickle=False) as z:
+        with reading(path, "FLAME parameter file (.npz)"), np.load(path, allow_pickle=False) as z:
             missing = [k for k in DRIVER_KEYS if k not in z.files]
             if missing:
                 raise InvalidArgumentError(f"--driver {path}: missing keys {missing}")

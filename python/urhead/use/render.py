@@ -18,8 +18,9 @@ import numpy as np
 import torch
 
 from urhead._progress import tracked
+from urhead.data.images import write_bgr_png
 from urhead.eval.metrics import frame_params
-from urhead.model.io import write_directory_atomically
+from urhead.files import write_directory_atomically
 from urhead.use.common import (
     add_background_option,
     check_output_dir,
@@ -94,7 +95,7 @@ def _render_frames(opened, args: argparse.Namespace) -> int:
         def images():
             for frame in tracked(frames, len(frames), "render"):
                 row = side_by_side(avatar, frame, occlusion, args.error_scale)
-                _write_png(folder / f"{frame.timestep:05d}.png", row)
+                write_bgr_png(folder / f"{frame.timestep:05d}.png", row)
                 yield row
 
         write_mp4(args.out / "render.mp4", images(), args.fps)
@@ -132,7 +133,7 @@ def _render_orbit(opened, args: argparse.Namespace) -> int:
                     [to_uint8(out.image), to_uint8(out.mesh.image)],
                     [f"avatar {turn}", "mesh branch"],
                 )
-                _write_png(folder / f"{i:03d}.png", row)
+                write_bgr_png(folder / f"{i:03d}.png", row)
                 yield row
 
         write_mp4(args.out / f"{name}.mp4", images(), args.fps)
@@ -165,10 +166,3 @@ def side_by_side(avatar, frame, occlusion_aware: bool, error_scale: float) -> np
             f"|error| 0-{error_scale:g}",
         ],
     )
-
-
-def _write_png(path: Path, bgr: np.ndarray) -> None:
-    import cv2
-
-    if not cv2.imwrite(str(path), bgr):
-        raise OSError(f"{path}: cannot write the PNG")

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from urhead.use.common import write_file_atomically
+from urhead.files import c_library_path, write_file_atomically
 
 H264_CRF = 18
 """x264's constant-rate factor: 18 is visually lossless for these renders."""
@@ -31,12 +31,14 @@ def write_mp4(path: Path, frames: Iterable[np.ndarray], fps: float) -> int:
             yield frame
 
     def write(tmp: Path) -> None:
-        if encoder:
-            _write_h264(tmp, counted(), fps)
-        else:
-            _write_mp4v(tmp, counted(), fps, path)
-        if count == 0:
-            raise ValueError(f"{path}: no frames to write")
+        with c_library_path(tmp, "w") as name:
+            if encoder:
+                _write_h264(name, counted(), fps)
+            else:
+                _write_mp4v(name, counted(), fps, path)
+            if count == 0:
+                raise ValueError(f"{path}: no frames to write")
+            _check_frame_count(name, count, path)
 
     if not encoder:
         print(f"{path}: PyAV with H.264 is not available, writing mp4v", file=sys.stderr)
@@ -52,11 +54,24 @@ def _h264_available() -> bool:
     return "libx264" in av.codecs_available or "h264" in av.codecs_available
 
 
-def _write_h264(tmp: Path, frames: Iterator[np.ndarray], fps: float) -> None:
+def _check_frame_count(name: str, count: int, path: Path) -> None:
+    """The written file's index must list ``count`` frames (a truncated file has none)."""
+    import cv2
+
+    video = cv2.VideoCapture(name)
+    try:
+        found = int(video.get(cv2.CAP_PROP_FRAME_COUNT)) if video.isOpened() else 0
+    finally:
+        video.release()
+    if found != count:
+        raise OSError(f"{path}: the video written holds {found} of {count} frames")
+
+
+def _write_h264(tmp: str, frames: Iterator[np.ndarray], fps: float) -> None:
     import av
 
     rate = Fraction(fps).limit_denominator(1001)
-    with av.open(str(tmp), mode="w", format="mp4", options={"movflags": "+faststart"}) as out:
+    with av.open(tmp, mode="w", format="mp4", options={"movflags": "+faststart"}) as out:
         stream = None
         for frame in frames:
             even = _pad_to_even(frame)
@@ -70,7 +85,7 @@ def _write_h264(tmp: Path, frames: Iterator[np.ndarray], fps: float) -> None:
             out.mux(stream.encode(None))  # flush the encoder's delayed frames
 
 
-def _write_mp4v(tmp: Path, frames: Iterator[np.ndarray], fps: float, path: Path) -> None:
+def _write_mp4v(tmp: str, frames: Iterator[np.ndarray], fps: float, path: Path) -> None:
     import cv2
 
     writer = None
@@ -78,7 +93,7 @@ def _write_mp4v(tmp: Path, frames: Iterator[np.ndarray], fps: float, path: Path)
         for frame in frames:
             if writer is None:
                 h, w = frame.shape[:2]
-                writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
+                writer = cv2.VideoWriter(tmp, cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
                 if not writer.isOpened():
                     raise OSError(f"{path}: OpenCV cannot open an mp4v video writer")
             writer.write(frame)
