@@ -104,7 +104,8 @@ fn mix_forward(x: &[f32], mix: &[f32], tri_id: &[i32]) -> Vec<f32> {
 
 /// Transpose of [`mix_forward`]: no gradient reaches background samples.
 fn mix_backward(g: &[f32], mix: &[f32], tri_id: &[i32]) -> Vec<f32> {
-    let mut out: Vec<f32> = zeroed(tri_id.len() * CHANNELS);
+    let mut out: Vec<f32> =
+        zeroed("bench gradient", tri_id.len() * CHANNELS).expect("bench buffer fits in memory");
     out.par_chunks_mut(CHANNELS)
         .zip(g.par_chunks_exact(3))
         .zip(tri_id.par_iter())

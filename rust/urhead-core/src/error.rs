@@ -37,6 +37,14 @@ pub enum Error {
         requested: u128,
         limit: u128,
     },
+    /// A buffer sized by the inputs cannot be allocated (the allocator refused it, or its
+    /// byte count overflows).
+    #[error("cannot allocate {what}: {elements} elements, {bytes} bytes")]
+    OutOfMemory {
+        what: &'static str,
+        elements: usize,
+        bytes: u128,
+    },
 }
 
 pub type Result<T> = std::result::Result<T, Error>;

@@ -2,19 +2,75 @@
 //! it costs one page fault per 4 KiB page — on a virtual machine that can cost more than
 //! the kernel writing the buffer (measured: 116 MB written fresh in ~70 ms with 4 KiB
 //! pages, ~22 ms with 2 MiB pages). So large buffers ask for transparent huge pages before
-//! their first touch.
+//! their first touch. Buffers sized by a caller's input are allocated fallibly, so a request
+//! too large for memory is an error the caller sees, never an abort.
+
+use std::alloc::Layout;
+
+use crate::error::{Error, Result};
 
 /// Buffers at least this large (bytes) are advised to use huge pages.
 const HUGE_PAGE_THRESHOLD: usize = 4 << 20;
 const HUGE_PAGE: usize = 2 << 20;
 
-/// `len` default values (zeros). For primitive numbers the allocation is `calloc`-backed:
-/// large buffers are fresh zero pages, advised to be huge pages before anything touches
-/// them, and no zeroing pass runs.
-pub fn zeroed<T: Clone + Default>(len: usize) -> Vec<T> {
-    let v = vec![T::default(); len];
-    advise_huge_pages(&v);
-    v
+/// Element types whose all-zero bit pattern is a valid value equal to their zero: plain
+/// integers and IEEE floats. Sealed, so `zeroed` can never hand out zero bytes as a type
+/// for which they would be invalid (references, enums, `NonZero*`).
+pub trait ZeroBits: sealed::Sealed + Copy {}
+
+mod sealed {
+    pub trait Sealed {}
+}
+
+macro_rules! zero_bits {
+    ($($t:ty),*) => {$(
+        impl sealed::Sealed for $t {}
+        impl ZeroBits for $t {}
+    )*};
+}
+zero_bits!(f32, f64, i8, i16, i32, i64, u8, u16, u32, u64, usize, isize);
+
+/// `len` zeros named `what` (the name goes into the error). The memory comes from
+/// `alloc_zeroed` (`calloc`): large buffers are fresh zero pages, advised to be huge pages
+/// before anything touches them, and no zeroing pass runs. `Err(OutOfMemory)` when the byte
+/// count overflows or the allocator refuses, instead of aborting the process.
+pub fn zeroed<T: ZeroBits>(what: &'static str, len: usize) -> Result<Vec<T>> {
+    let out_of_memory = || Error::OutOfMemory {
+        what,
+        elements: len,
+        bytes: len as u128 * std::mem::size_of::<T>() as u128,
+    };
+    let layout = Layout::array::<T>(len).map_err(|_| out_of_memory())?;
+    if layout.size() == 0 {
+        return Ok(Vec::new());
+    }
+    // SAFETY: `layout` has a non-zero size, as `alloc_zeroed` requires.
+    let ptr = unsafe { std::alloc::alloc_zeroed(layout) }.cast::<T>();
+    if ptr.is_null() {
+        return Err(out_of_memory());
+    }
+    // SAFETY: `ptr` is a live allocation from the global allocator with exactly the layout
+    // `Vec<T>` uses for capacity `len` (`Layout::array::<T>(len)`), so the Vec may own and
+    // later free it. All `len` elements are initialised: the bytes are zero and `T: ZeroBits`
+    // guarantees all-zero bytes are a valid `T`.
+    let buf = unsafe { Vec::from_raw_parts(ptr, len, len) };
+    advise_huge_pages(&buf);
+    Ok(buf)
+}
+
+/// `len` copies of `value` named `what`, reserved with `try_reserve_exact`:
+/// `Err(OutOfMemory)` instead of an abort when the allocator refuses. For fill values other
+/// than zero; zeros should come from [`zeroed`].
+pub fn filled<T: Clone>(what: &'static str, len: usize, value: T) -> Result<Vec<T>> {
+    let mut buf = Vec::new();
+    buf.try_reserve_exact(len).map_err(|_| Error::OutOfMemory {
+        what,
+        elements: len,
+        bytes: len as u128 * std::mem::size_of::<T>() as u128,
+    })?;
+    buf.resize(len, value);
+    advise_huge_pages(&buf);
+    Ok(buf)
 }
 
 /// Asks the kernel to back the whole 2 MiB pages inside `buf` with huge pages. Only
@@ -73,9 +129,51 @@ mod tests {
     #[test]
     fn zeroed_buffers_are_zero_whatever_their_size() {
         for len in [0usize, 7, 3 << 20] {
-            let v: Vec<f32> = zeroed(len);
+            let v: Vec<f32> = zeroed("test buffer", len).unwrap();
             assert_eq!(v.len(), len);
             assert!(v.iter().all(|&x| x == 0.0));
         }
+    }
+
+    #[test]
+    fn zeroed_refuses_a_size_the_allocator_cannot_give() {
+        // 2^61 f32 = 8 EiB: a valid layout, but no machine can map it.
+        let len = usize::MAX / 8;
+        let err = zeroed::<f32>("huge map", len).unwrap_err();
+        assert_eq!(
+            err,
+            Error::OutOfMemory {
+                what: "huge map",
+                elements: len,
+                bytes: len as u128 * 4
+            }
+        );
+        assert!(err.to_string().contains("huge map"), "{err}");
+    }
+
+    #[test]
+    fn zeroed_refuses_a_byte_count_that_overflows() {
+        let len = usize::MAX / 2;
+        let err = zeroed::<f64>("overflowing map", len).unwrap_err();
+        let Error::OutOfMemory { bytes, .. } = err else {
+            panic!("expected OutOfMemory, got {err:?}");
+        };
+        assert!(bytes > usize::MAX as u128);
+    }
+
+    #[test]
+    fn filled_refuses_a_size_the_allocator_cannot_give() {
+        let err = filled("huge fill", usize::MAX / 4, 1.0f32).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                Error::OutOfMemory {
+                    what: "huge fill",
+                    ..
+                }
+            ),
+            "{err:?}"
+        );
+        assert_eq!(filled("small fill", 3, -1i32).unwrap(), vec![-1, -1, -1]);
     }
 }

@@ -15,6 +15,7 @@ pub trait Real:
     + Send
     + Sync
     + Default
+    + crate::memory::ZeroBits
     + std::fmt::Debug
     + 'static
 {

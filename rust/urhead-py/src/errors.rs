@@ -36,5 +36,6 @@ pub fn py_err(e: Error) -> PyErr {
         Error::IndexOutOfRange { .. } => IndexRangeError::new_err(msg),
         Error::Invalid { .. } => InvalidArgumentError::new_err(msg),
         Error::TooLarge { .. } => SizeLimitError::new_err(msg),
+        Error::OutOfMemory { .. } => PyMemoryError::new_err(msg),
     }
 }

@@ -8,6 +8,7 @@ use super::skeleton::Skeleton;
 use super::{LbsInputs, LbsModel, VERT_CHUNK};
 use crate::error::{check_len, Result};
 use crate::mat3::{add, frobenius, matmul_nt, matmul_tn, matvec_t, outer, zero3, M3, V3};
+use crate::memory::zeroed;
 use crate::parallel::{axpy, batch_chunks_mut, dot, sum_in_order};
 use crate::Real;
 
@@ -108,7 +109,7 @@ pub fn lbs_backward<T: Real>(
         .collect();
 
     // Pass 1: skinning adjoint, per vertex chunk.
-    let mut v_posed_grad = vec![T::zero(); b * nv * 3];
+    let mut v_posed_grad = zeroed("posed vertex gradient (B, V, 3)", b * nv * 3)?;
     let chunk_partials: Vec<Vec<SkinPartials<T>>> = batch_chunks_mut(&mut v_posed_grad, b, 3, VERT_CHUNK)
         .into_par_iter()
         .enumerate()

@@ -7,6 +7,7 @@ use super::backward::LbsSaved;
 use super::skeleton::Skeleton;
 use super::{LbsInputs, LbsModel, VERT_CHUNK};
 use crate::error::{check_finite, Result};
+use crate::memory::zeroed;
 use crate::parallel::{axpy, batch_chunks_mut, dot, sum_in_order};
 use crate::Real;
 
@@ -60,9 +61,9 @@ pub fn lbs_forward<T: Real>(model: &LbsModel<T>, inputs: &LbsInputs<T>) -> Resul
     let zero_transl = vec![T::zero(); b * 3];
     let transl = inputs.transl.unwrap_or(&zero_transl);
 
-    let mut v_posed = vec![T::zero(); b * nv * 3];
-    let mut verts = vec![T::zero(); b * nv * 3];
-    let mut rotations = vec![T::zero(); b * nv * 9];
+    let mut v_posed = zeroed("posed vertices (B, V, 3)", b * nv * 3)?;
+    let mut verts = zeroed("vertices (B, V, 3)", b * nv * 3)?;
+    let mut rotations = zeroed("vertex rotations (B, V, 3, 3)", b * nv * 9)?;
     batch_chunks_mut(&mut v_posed, b, 3, VERT_CHUNK)
         .into_par_iter()
         .zip(batch_chunks_mut(&mut verts, b, 3, VERT_CHUNK))

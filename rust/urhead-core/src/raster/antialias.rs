@@ -337,7 +337,7 @@ pub fn antialias_forward<T: Real>(inputs: &AntialiasInputs<T>) -> Result<Vec<T>>
     let scene = inputs.scene();
     let blends = scene.all_blends();
     let color = inputs.color;
-    let mut out = zeroed(color.len());
+    let mut out = zeroed("antialiased image", color.len())?;
     out.copy_from_slice(color);
     for b in blends.iter().flatten() {
         let t = b.target();
@@ -361,20 +361,22 @@ pub fn antialias_backward<T: Real>(
     let scene = inputs.scene();
     let blends = scene.all_blends();
     let color = inputs.color;
-    let v_color = need_color.then(|| {
-        let mut v_color = zeroed(v_out.len());
-        v_color.copy_from_slice(v_out);
-        for b in blends.iter().flatten() {
-            let t = b.target();
-            let alpha = T::c(b.alpha);
-            for k in 0..c {
-                let g = alpha * v_out[t * c + k];
-                v_color[b.p0 * c + k] -= g;
-                v_color[b.p1 * c + k] += g;
+    let v_color = need_color
+        .then(|| -> Result<Vec<T>> {
+            let mut v_color = zeroed("color gradient", v_out.len())?;
+            v_color.copy_from_slice(v_out);
+            for b in blends.iter().flatten() {
+                let t = b.target();
+                let alpha = T::c(b.alpha);
+                for k in 0..c {
+                    let g = alpha * v_out[t * c + k];
+                    v_color[b.p0 * c + k] -= g;
+                    v_color[b.p1 * c + k] += g;
+                }
             }
-        }
-        v_color
-    });
+            Ok(v_color)
+        })
+        .transpose()?;
     let v_verts = need_verts.then(|| {
         let cam = inputs.camera;
         let (fx, fy, cx, cy) = (cam.fx as f64, cam.fy as f64, cam.cx as f64, cam.cy as f64);

@@ -72,7 +72,7 @@ pub fn interpolate_forward<T: Real>(
 ) -> Result<Vec<T>> {
     let d = validate(attr, channels, faces, tri_id, bary, height, width)?;
     let c = d.channels;
-    let mut out = zeroed(d.height * d.width * c);
+    let mut out = zeroed("interpolated image", d.height * d.width * c)?;
     out.par_chunks_mut(TILE_ROWS * d.width * c)
         .enumerate()
         .for_each(|(tile, out)| {
@@ -157,32 +157,34 @@ pub fn interpolate_backward<T: Real>(
         }
         v_attr
     });
-    let v_bary = need_bary.then(|| {
-        let mut v_bary = zeroed(h * w * 2);
-        v_bary
-            .par_chunks_mut(TILE_ROWS * w * 2)
-            .enumerate()
-            .for_each(|(tile, vb)| {
-                let first = tile * TILE_ROWS * w;
-                for (i, vb) in vb.chunks_exact_mut(2).enumerate() {
-                    let idx = first + i;
-                    let tri = tri_id[idx];
-                    if tri < 0 {
-                        continue;
+    let v_bary = need_bary
+        .then(|| -> Result<Vec<T>> {
+            let mut v_bary = zeroed("barycentric gradient", h * w * 2)?;
+            v_bary
+                .par_chunks_mut(TILE_ROWS * w * 2)
+                .enumerate()
+                .for_each(|(tile, vb)| {
+                    let first = tile * TILE_ROWS * w;
+                    for (i, vb) in vb.chunks_exact_mut(2).enumerate() {
+                        let idx = first + i;
+                        let tri = tri_id[idx];
+                        if tri < 0 {
+                            continue;
+                        }
+                        let f = &faces[3 * tri as usize..3 * tri as usize + 3];
+                        let (a0, a1, a2) = (row(attr, f[0], c), row(attr, f[1], c), row(attr, f[2], c));
+                        let g = &v_out[idx * c..(idx + 1) * c];
+                        let (mut d1, mut d2) = (T::zero(), T::zero());
+                        for k in 0..c {
+                            d1 += g[k] * (a1[k] - a0[k]);
+                            d2 += g[k] * (a2[k] - a0[k]);
+                        }
+                        vb[0] = d1;
+                        vb[1] = d2;
                     }
-                    let f = &faces[3 * tri as usize..3 * tri as usize + 3];
-                    let (a0, a1, a2) = (row(attr, f[0], c), row(attr, f[1], c), row(attr, f[2], c));
-                    let g = &v_out[idx * c..(idx + 1) * c];
-                    let (mut d1, mut d2) = (T::zero(), T::zero());
-                    for k in 0..c {
-                        d1 += g[k] * (a1[k] - a0[k]);
-                        d2 += g[k] * (a2[k] - a0[k]);
-                    }
-                    vb[0] = d1;
-                    vb[1] = d2;
-                }
-            });
-        v_bary
-    });
+                });
+            Ok(v_bary)
+        })
+        .transpose()?;
     Ok(InterpolateGrads { v_attr, v_bary })
 }

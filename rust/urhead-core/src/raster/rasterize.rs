@@ -23,7 +23,7 @@ pub fn rasterize_forward<T: Real>(verts: &[T], faces: &[i32], camera: &Camera) -
     let hom = validate(verts, faces, camera)?;
     let vp = viewport(camera);
     let setup = setup_triangles::<T>(&hom, faces, &vp);
-    Ok(scan_tiles(&setup, &vp, T::c(camera.far as f64)))
+    scan_tiles(&setup, &vp, T::c(camera.far as f64))
 }
 
 /// Gradient of a loss with respect to `verts (V, 3)` given its gradient `v_bary (H, W, 2)`
@@ -181,12 +181,12 @@ pub(crate) fn camera_homogeneous<T: Real>(verts: &[T], camera: &Camera) -> Vec<H
 
 /// Scans every tile: per pixel the nearest covering triangle (equal depth → lower id),
 /// skipping depths beyond `far`. The result is independent of scan order and threads.
-pub(crate) fn scan_tiles<T: Real>(setup: &Setup<T>, vp: &Viewport, far: T) -> RasterImage<T> {
+pub(crate) fn scan_tiles<T: Real>(setup: &Setup<T>, vp: &Viewport, far: T) -> Result<RasterImage<T>> {
     let (w, h) = (vp.width, vp.height);
     let bins = Bins::new(setup, vp.num_tiles());
-    let mut tri_id = zeroed(w * h);
-    let mut bary = zeroed(2 * w * h);
-    let mut depth = zeroed(w * h);
+    let mut tri_id = zeroed("raster tri_id (H, W)", w * h)?;
+    let mut bary = zeroed("raster bary (H, W, 2)", 2 * w * h)?;
+    let mut depth = zeroed("raster depth (H, W)", w * h)?;
     tri_id
         .par_chunks_mut(TILE_ROWS * w)
         .zip(bary.par_chunks_mut(2 * TILE_ROWS * w))
@@ -235,11 +235,11 @@ pub(crate) fn scan_tiles<T: Real>(setup: &Setup<T>, vp: &Viewport, far: T) -> Ra
                 }
             }
         });
-    RasterImage {
+    Ok(RasterImage {
         tri_id,
         bary,
         depth,
         width: w,
         height: h,
-    }
+    })
 }

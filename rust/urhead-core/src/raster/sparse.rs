@@ -17,6 +17,7 @@ use rayon::prelude::*;
 use super::texture::{
     gradient_taps, uv_gradient, uv_gradient_ahead, TexShape, PREFETCH_DISTANCE, SAMPLE_CHUNK,
 };
+use crate::error::Result;
 use crate::memory::{prefetch, zeroed};
 use crate::Real;
 
@@ -70,7 +71,7 @@ pub(crate) fn sparse_texel_gradient<T: Real>(
     uv: &[T],
     v_out: &[T],
     v_uv: Option<&mut [T]>,
-) -> SparseTexels<T> {
+) -> Result<SparseTexels<T>> {
     let c = shape.channels;
     let n = uv.len() / 2;
     let buckets = Buckets::new(shape);
@@ -134,8 +135,8 @@ pub(crate) fn sparse_texel_gradient<T: Real>(
 
     // 3. Sum each texel's entries in sample order into disjoint slices of the output. The
     // first entry is written, not added, so fresh output pages are never read first.
-    let mut indices: Vec<i64> = zeroed(2 * nnz);
-    let mut values: Vec<T> = zeroed(nnz * c);
+    let mut indices: Vec<i64> = zeroed("texture gradient indices (2, nnz)", 2 * nnz)?;
+    let mut values: Vec<T> = zeroed("texture gradient values (nnz, C)", nnz * c)?;
     let (rows, cols) = indices.split_at_mut(nnz);
     let mut parts = Vec::with_capacity(buckets.count);
     let (mut rows, mut cols, mut vals) = (rows, cols, values.as_mut_slice());
@@ -172,7 +173,7 @@ pub(crate) fn sparse_texel_gradient<T: Real>(
                 }
             }
         });
-    SparseTexels { indices, values, nnz }
+    Ok(SparseTexels { indices, values, nnz })
 }
 
 /// Stable counting sort of entries by bucket; returns them with bucket offsets.

@@ -206,7 +206,7 @@ pub fn texture_forward<T: Real>(
     };
     let n = validate(tex, &shape, uv)?;
     let c = channels;
-    let mut out = zeroed(n * c);
+    let mut out = zeroed("texture samples (N, C)", n * c)?;
     let non_finite = out
         .par_chunks_mut(SAMPLE_CHUNK * c)
         .enumerate()
@@ -269,9 +269,15 @@ pub fn texture_backward<T: Real>(
     let n = validate(tex, &shape, uv)?;
     let c = channels;
     check_len("v_out", v_out, n * c, &format!("(N, C) = ({n}, {c})"))?;
-    let mut v_uv = need_uv.then(|| zeroed(2 * n));
+    let mut v_uv = need_uv.then(|| zeroed("uv gradient (N, 2)", 2 * n)).transpose()?;
     let v_tex = if need_tex {
-        Some(sparse_texel_gradient(&shape, tex, uv, v_out, v_uv.as_deref_mut()))
+        Some(sparse_texel_gradient(
+            &shape,
+            tex,
+            uv,
+            v_out,
+            v_uv.as_deref_mut(),
+        )?)
     } else {
         if let Some(v_uv) = v_uv.as_deref_mut() {
             v_uv.par_chunks_mut(2 * SAMPLE_CHUNK)

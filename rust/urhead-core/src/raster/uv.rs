@@ -52,5 +52,5 @@ pub fn rasterize_uv<T: Real>(
         near: 0.0,
     };
     let setup = setup_triangles::<T>(&hom, uv_faces, &vp);
-    Ok(scan_tiles(&setup, &vp, T::infinity()))
+    scan_tiles(&setup, &vp, T::infinity())
 }

@@ -8,6 +8,7 @@ use rayon::prelude::*;
 
 use super::{RasterInputs, MAX_INTERSECTIONS, TILE};
 use crate::error::{Error, Result};
+use crate::memory::zeroed;
 use crate::Real;
 
 /// Tile lists and their inverse. Built by [`Binning::new`], reused by the backward.
@@ -114,8 +115,8 @@ impl Binning {
             tile_offsets.push(tile_offsets.last().unwrap() + c);
         }
         let mut cursor: Vec<u32> = tile_offsets[..num_tiles].to_vec();
-        let mut tile_gaussians = vec![0u32; total];
-        let mut isect_of_gaussian = vec![0u32; total];
+        let mut tile_gaussians: Vec<u32> = zeroed("tile intersections", total)?;
+        let mut isect_of_gaussian: Vec<u32> = zeroed("intersection order", total)?;
         for &g in &order {
             let [x0, x1, y0, y1] = rects[g as usize];
             let mut slot = gaussian_offsets[g as usize] as usize;

@@ -10,6 +10,7 @@ use super::binning::Binning;
 use super::lanes::{Lanes, WIDTH};
 use super::{RasterInputs, SplatReal, ALPHA_MAX, ALPHA_MIN, TILE, T_STOP};
 use crate::error::Result;
+use crate::memory::{filled, zeroed};
 use crate::Real;
 use num_traits::{One, Zero};
 
@@ -292,8 +293,8 @@ where
     let binning = Binning::new(inputs)?;
     let splats = splats(inputs);
     let (w, h, c) = (inputs.width, inputs.height, inputs.channels);
-    let mut image = vec![L::Elem::zero(); w * h * c];
-    let mut transmittance = vec![L::Elem::one(); w * h];
+    let mut image = zeroed("splat image (H, W, C)", w * h * c)?;
+    let mut transmittance = filled("splat transmittance (H, W)", w * h, L::Elem::one())?;
     let zero_bg = vec![L::Elem::zero(); c];
     let background = inputs.background.unwrap_or(&zero_bg);
     let evaluated_chunks: u64 = image

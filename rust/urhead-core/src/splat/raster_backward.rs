@@ -17,6 +17,7 @@ use super::raster::{chunk_dx, row_terms, splats, Splat, TileState, SLOTS};
 use super::records::{record_gaussian, RowRecords};
 use super::{RasterInputs, SplatReal, ALPHA_MAX, TILE};
 use crate::error::{check_len, Error, Result};
+use crate::memory::zeroed;
 use crate::Real;
 use num_traits::Zero;
 
@@ -92,7 +93,7 @@ fn backward_segmented<L: Lanes>(
     }
     let splats = splats(inputs);
     let rec_len = RECORD_HEAD + c;
-    let mut records = vec![L::Elem::zero(); binning.num_intersections() * rec_len];
+    let mut records = zeroed("splat gradient records", binning.num_intersections() * rec_len)?;
     let zero_bg = vec![L::Elem::zero(); c];
     let background = inputs.background.unwrap_or(&zero_bg);
 
@@ -139,7 +140,7 @@ fn backward_segmented<L: Lanes>(
     // Per Gaussian, sum its intersection records in its fixed (row-major tile) order.
     let mut v_means2d = vec![L::Elem::zero(); n * 2];
     let mut v_conics = vec![L::Elem::zero(); n * 3];
-    let mut v_colors = vec![L::Elem::zero(); n * c];
+    let mut v_colors = zeroed("colour gradient (N, C)", n * c)?;
     let mut v_opacities = vec![L::Elem::zero(); n];
     const CHUNK: usize = 1024;
     v_means2d

@@ -16,6 +16,7 @@ use super::blur::{PaddedRows, RowRing};
 use super::forward::{expand_mask_row, MomentStream, MOMENTS};
 use super::{bands, gaussian_window, PixelTerms, SsimInputs, BAND_ROWS, WINDOW};
 use crate::error::Result;
+use crate::memory::zeroed;
 use crate::parallel::dot;
 use crate::Real;
 
@@ -43,7 +44,7 @@ pub fn masked_ssim_with_grad<T: Real>(inputs: &SsimInputs<'_, T>) -> Result<(T, 
     let norm = inputs.validate()?.max(1.0);
     let (h, len) = (inputs.height, inputs.width * inputs.channels);
     let scale = T::c(1.0 / (norm * inputs.channels as f64));
-    let mut grad = vec![T::zero(); h * len];
+    let mut grad = zeroed("SSIM gradient (H, W, C)", h * len)?;
     let partials: Vec<f64> = grad
         .par_chunks_mut(BAND_ROWS * len)
         .zip(bands(h))

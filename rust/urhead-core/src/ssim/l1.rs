@@ -6,6 +6,7 @@ use rayon::prelude::*;
 use super::forward::expand_mask_row;
 use super::{SsimInputs, BAND_ROWS};
 use crate::error::Result;
+use crate::memory::zeroed;
 use crate::Real;
 
 /// Masked mean absolute difference.
@@ -37,7 +38,7 @@ pub fn masked_l1_with_grad<T: Real>(inputs: &SsimInputs<'_, T>) -> Result<(T, Ve
     let len = inputs.width * inputs.channels;
     let denominator = (norm * inputs.channels as f64).max(1.0);
     let scale = T::c(1.0 / denominator);
-    let mut grad = vec![T::zero(); inputs.height * len];
+    let mut grad = zeroed("L1 gradient (H, W, C)", inputs.height * len)?;
     let partials: Vec<f64> = grad
         .par_chunks_mut(BAND_ROWS * len)
         .zip(inputs.image.par_chunks(BAND_ROWS * len))
