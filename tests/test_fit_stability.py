@@ -12,10 +12,11 @@ import pytest
 import torch
 
 import urhead.train.trainer as trainer_module
+from test_fit import SMALL_FIT, TINY
 from urhead.config import FitConfig
 from urhead.data import load_subject
 from urhead.data.reader import FrameSequence
-from urhead.data.synthetic import SynthConfig, synthesize
+from urhead.data.synthetic import synthesize
 from urhead.errors import UnitsError
 from urhead.head import load_head, procedural_head
 from urhead.model import load_avatar
@@ -24,26 +25,8 @@ from urhead.train.command import fit_subject
 from urhead.train.guard import LR_CUT, WINDOW, StepGuard
 from urhead.train.trainer import Trainer
 
-TINY = SynthConfig(
-    frames=10, resolution=64, seed=5, difficulty="easy", samples_per_side=1, edge_samples_per_side=1
-)
-FIT = FitConfig(
-    iterations=40,
-    uv_resolution=64,
-    initial_gaussians=300,
-    max_gaussians=450,
-    sample_every=10,
-    sample_cap=60,
-    error_grid=32,
-    lr_decay_start=20,
-    lr_color=5e-3,
-    lr_displacement=1e-4,
-    color_init_frames=2,
-    eval_every_seconds=1e9,
-    eval_frames=2,
-    checkpoint_every=10,
-    refine_steps=2,
-)
+# The small subject and fit of test_fit, with no periodic scoring and 2 refinement steps.
+FIT = replace(SMALL_FIT, eval_every_seconds=1e9, refine_steps=2)
 RATES = [
     name
     for name in FitConfig.__dataclass_fields__
