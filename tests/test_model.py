@@ -306,3 +306,31 @@ def test_shading_maps_scale_colour_with_the_surface_rotation(head):
     covered = (unlit - 1).abs().sum(-1) > 0.05  # head pixels, not background
     ratio = (lit[covered] / unlit[covered].clamp_min(1e-3)).mean()
     assert ratio == pytest.approx(1 + 0.8 * float(torch.sin(torch.tensor(0.3))), abs=0.03)
+
+
+def test_silhouette_loss_is_the_coverage_error_and_moves_opacity_and_the_pose(head):
+    """coverage = 1 − T·(1 − α_mesh) of the composite; the term is its mean absolute
+    difference from the mask, zero against the avatar's own coverage, and its gradient
+    reaches the opacity map and the frame's pose (through the antialiased silhouette)."""
+    from types import SimpleNamespace
+
+    from urhead.train.loss import coverage, silhouette_loss
+
+    avatar = make_avatar(head)
+    avatar.maps.requires_grad_(True)
+    params = avatar.frame(7)
+    params = type(params)(*(p.clone().requires_grad_(True) for p in params))
+    gather = TextureGather(avatar.maps)
+    out = avatar.render(params, camera(), gather=gather)
+    cover = coverage(out)
+    expected = 1 - out.gaussians.transmittance * (1 - out.mesh.alpha)
+    assert torch.equal(cover, expected) and 0 <= float(cover.min()) <= float(cover.max()) <= 1
+    own = SimpleNamespace(mask=cover.detach())
+    assert float(silhouette_loss(out, own)) == 0
+    empty = SimpleNamespace(mask=torch.zeros_like(cover))
+    loss = silhouette_loss(out, empty)
+    assert float(loss) == pytest.approx(float(cover.mean()))
+    loss.backward()
+    opacity = gather.gradient().coalesce().values()[:, avatar.layout.opacity]
+    assert opacity.abs().sum() > 0
+    assert params.pose.grad is not None and params.pose.grad.abs().sum() > 0

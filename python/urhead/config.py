@@ -8,11 +8,10 @@ are dicts of overrides applied before explicit command-line values.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import math
 import typing
 from dataclasses import dataclass, field, fields, replace
-from typing import Any, Literal
+from typing import Literal
 
 from urhead.data.background import parse_background
 from urhead.errors import InvalidArgumentError
@@ -79,10 +78,6 @@ def from_arguments(
         if getattr(args, f.name, None) is not None
     }
     return replace(config, **explicit)
-
-
-def to_dict(config) -> dict[str, Any]:
-    return dataclasses.asdict(config)
 
 
 @dataclass(frozen=True)

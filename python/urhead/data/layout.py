@@ -122,18 +122,6 @@ def canonical_flame_params(num_shape: int, num_expr: int, num_vertices: int | No
     return params
 
 
-def flame_pose(params: dict) -> np.ndarray:
-    """(15,) FLAME pose (global, neck, jaw, left eye, right eye) from a parameter dict."""
-    return np.concatenate(
-        [
-            params["rotation"].reshape(3),
-            params["neck_pose"].reshape(3),
-            params["jaw_pose"].reshape(3),
-            params["eyes_pose"].reshape(6),
-        ]
-    )
-
-
 # Normal maps: camera-space unit normals in OpenCV axes (x right, y down, z forward; a
 # surface facing the camera has z < 0) are stored as 8-bit RGB of the OpenGL-axes normal
 # (x, -y, -z) mapped from [-1, 1] to [0, 255], the usual "blue faces the viewer" picture.

@@ -15,8 +15,6 @@ not penalised and only D is smoothed (our reading of "suppress noisy displacemen
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
 import numpy as np
 import torch
 
@@ -25,12 +23,6 @@ from urhead.model.avatar import Render
 
 OFFSET_UNIT = 0.1
 """metres: the Gaussian offset regulariser is the mean of (E / OFFSET_UNIT)²."""
-
-
-class LossTerms(NamedTuple):
-    total: torch.Tensor
-    terms: dict[str, float]
-    """Each computed term's value (for logs)."""
 
 
 def training_loss(
@@ -45,41 +37,34 @@ def training_loss(
     use_normals: bool,
     lambda_offset: float = 0.0,
     lambda_alpha: float = 0.0,
-) -> LossTerms:
-    """The loss of one rendered training frame (a dataset :class:`Frame`)."""
+) -> torch.Tensor:
+    """The loss (a scalar) of one rendered training frame (a dataset :class:`Frame`)."""
     target = frame.image
     image = render.image
     l1_full = l1(image, target)
-    terms = {"l1": float(l1_full.detach())}
     photo = l1_full
     if render.gaussians is not None and mesh_term > 0:
         l1_mesh = l1(render.mesh.image, target)
         photo = (1 - mesh_term) * l1_full + mesh_term * l1_mesh
-        terms["l1_mesh"] = float(l1_mesh.detach())
     total = (1 - lambda_ssim) * photo
     if lambda_ssim > 0:
         d_ssim = 1 - ssim(image, target)
         total = total + lambda_ssim * d_ssim
-        terms["d_ssim"] = float(d_ssim.detach())
     if use_normals and lambda_normal > 0:
         normal = normal_loss(render, frame)
         total = total + lambda_normal * normal
-        terms["normal"] = float(normal.detach())
     if lambda_laplacian > 0:
         lap = laplacian_loss(render.mesh.offsets, laplacian)
         total = total + lambda_laplacian * lap
-        terms["laplacian"] = float(lap.detach())
     if lambda_alpha > 0:
         sil = silhouette_loss(render, frame)
         total = total + lambda_alpha * sil
-        terms["alpha"] = float(sil.detach())
     offset = render.gaussians.lift.offset if render.gaussians is not None else None
     if offset is not None and lambda_offset > 0 and offset.numel():
         # In units of (100 mm)²: a hair shell of ~1 cm costs 1 % of λ per Gaussian.
         reg = (offset / OFFSET_UNIT).square().mean()
         total = total + lambda_offset * reg
-        terms["offset"] = float(reg.detach())
-    return LossTerms(total, terms)
+    return total
 
 
 def coverage(render: Render) -> torch.Tensor:

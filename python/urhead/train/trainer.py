@@ -281,9 +281,9 @@ class Trainer:
             lambda_offset=c.lambda_offset,
             lambda_alpha=c.lambda_alpha,
         )
-        loss.total.backward()
+        loss.backward()
         avatar.maps.grad = gather.gradient()
-        if state.guard.step(it, row, loss.total.detach()):  # applies the step, or undoes it
+        if state.guard.step(it, row, loss.detach()):  # applies the step, or undoes it
             if self.adaptive:
                 state.accumulator.add(*uv_error_samples(render, frame))
             if render.gaussians is not None:
@@ -295,7 +295,7 @@ class Trainer:
         state.guard.end_iteration(it)
         if self.gaussians and it % c.sample_every == 0 and it < c.iterations:
             self._resample(state, frame)
-        return loss.total.detach(), render, frame
+        return loss.detach(), render, frame
 
     def run(self, resume: bool = False) -> FitResult:
         """Trains to ``config.iterations`` (from the last checkpoint with ``resume``),

@@ -72,15 +72,6 @@ def skin_regions(p: np.ndarray) -> np.ndarray:
 # --- expression and identity fields: (P, 3) rest points → (P, 3) displacement ---------
 
 
-def _mirror_x(f):
-    def g(p):
-        left = f(p * np.array([1.0, 1, 1]), 1.0)
-        right = f(p, -1.0)
-        return left + right
-
-    return g
-
-
 def _corner(side):
     return np.array([side * A.MOUTH_HALF_WIDTH, A.MOUTH_Y - 0.001, 0.077])
 
