@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from urhead.camera import Camera
+from urhead.data.images import to_uint8
 from urhead.errors import InvalidArgumentError
 from urhead.model import Avatar
 from urhead.model.io import add_to_description, load_avatar_and_description
@@ -213,7 +214,6 @@ def check_output_file(path: Path, option: str, suffix: str) -> Path:
     return path
 
 
-def to_uint8(image: torch.Tensor) -> np.ndarray:
+def bgr_uint8(image: torch.Tensor) -> np.ndarray:
     """(H, W, 3) float RGB in [0, 1] → uint8 BGR for OpenCV."""
-    rgb = (image.detach().clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy()
-    return np.ascontiguousarray(rgb[..., ::-1])
+    return np.ascontiguousarray(to_uint8(image.detach().numpy())[..., ::-1])

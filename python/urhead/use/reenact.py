@@ -23,10 +23,10 @@ from urhead.errors import InvalidArgumentError, ShapeError, reading
 from urhead.model.avatar import POSE_SIZE, FlameParams
 from urhead.use.common import (
     avatar_camera,
+    bgr_uint8,
     check_output_file,
     open_avatar,
     open_subject,
-    to_uint8,
 )
 from urhead.use.video import write_mp4
 
@@ -76,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
 
     def images():
         for p in tracked(params, len(params), "reenact"):
-            yield to_uint8(avatar.render(p, camera, occlusion_aware=opened.occlusion_aware).image)
+            yield bgr_uint8(avatar.render(p, camera, occlusion_aware=opened.occlusion_aware).image)
 
     with torch.no_grad():
         count = write_mp4(out, images(), args.fps)

@@ -23,12 +23,12 @@ from urhead.eval.metrics import frame_params
 from urhead.files import write_directory_atomically
 from urhead.use.common import (
     add_background_option,
+    bgr_uint8,
     check_output_dir,
     frame_at,
     open_avatar,
     open_subject,
     split_frames,
-    to_uint8,
     use_background,
 )
 from urhead.use.orbit import default_orbit_angles, orbit_cameras, sweep_angles
@@ -130,7 +130,7 @@ def _render_orbit(opened, args: argparse.Namespace) -> int:
                 out = avatar.render(params, cam, occlusion_aware=occlusion)
                 turn = f"{np.degrees(angle):+.0f} deg"
                 row = labelled_row(
-                    [to_uint8(out.image), to_uint8(out.mesh.image)],
+                    [bgr_uint8(out.image), bgr_uint8(out.mesh.image)],
                     [f"avatar {turn}", "mesh branch"],
                 )
                 write_bgr_png(folder / f"{i:03d}.png", row)
@@ -156,9 +156,11 @@ def side_by_side(avatar, frame, occlusion_aware: bool, error_scale: float) -> np
     out = avatar.render(frame_params(avatar, frame), frame.camera, occlusion_aware=occlusion_aware)
     image = out.image.clamp(0, 1)
     error = (image - frame.image).abs().mean(-1) / error_scale
-    heat = cv2.applyColorMap(to_uint8(error[..., None].expand(-1, -1, 3))[..., 0], cv2.COLORMAP_JET)
+    heat = cv2.applyColorMap(
+        bgr_uint8(error[..., None].expand(-1, -1, 3))[..., 0], cv2.COLORMAP_JET
+    )
     return labelled_row(
-        [to_uint8(frame.image), to_uint8(image), to_uint8(out.mesh.image), heat],
+        [bgr_uint8(frame.image), bgr_uint8(image), bgr_uint8(out.mesh.image), heat],
         [
             f"ground truth t={frame.timestep}",
             "avatar",
