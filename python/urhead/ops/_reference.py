@@ -367,7 +367,8 @@ def antialias(color, raster, verts, faces, camera):
                     if silhouette(t, e):
                         found = (t, e, d, rel, rd)
                         break
-                    if topo[t][e] < 0 or d >= 1 + 1 / 16:
+                    far = t1 if first else t0
+                    if topo[t][e] < 0 or topo[t][e] == far or d >= 1 + 1 / 16:
                         break
                     t = topo[t][e]
                 if found is None:
