@@ -7,8 +7,9 @@ one condition changed at a time (`urhead synth --tracking-noise / --light / --ha
 Remedies are cumulative settings of the quick preset, from the paper's model (the quick
 preset as it was before them) to today's quick preset. Every fit is the real trainer; the
 held-out frames are never used for anything but the score. A fit's result is cached in
-``.cache/conditions/`` under a key of its subject and settings, so a long run can be resumed
-and the markdown rebuilt without refitting.
+``.cache/conditions/`` under a key of its subject, its settings and the code that fitted it
+(urhead's Python sources and native module), so a long run can be resumed and the markdown
+rebuilt without refitting, and a change to the model or a kernel refits.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from pathlib import Path
 
 import torch
 
+import urhead
 from sections.common import table
 from urhead.config import FIT_PRESETS, FitConfig
 from urhead.data import load_subject
@@ -77,8 +79,22 @@ def fit_config(remedy: str) -> FitConfig:
     return replace(base, **REMEDIES[remedy])
 
 
+def _code_fingerprint() -> str:
+    """SHA-256 of the installed urhead package: its Python sources and native module."""
+    package = Path(urhead.__file__).parent
+    digest = hashlib.sha256()
+    for path in sorted(package.rglob("*")):
+        if path.suffix in (".py", ".so", ".pyd") and path.is_file():
+            digest.update(str(path.relative_to(package)).encode())
+            digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
 def _key(subject: SynthConfig, config: FitConfig) -> str:
-    blob = json.dumps({"subject": subject.cache_key(), "fit": asdict(config)}, sort_keys=True)
+    blob = json.dumps(
+        {"subject": subject.cache_key(), "fit": asdict(config), "code": _code_fingerprint()},
+        sort_keys=True,
+    )
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
