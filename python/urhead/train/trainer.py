@@ -466,7 +466,7 @@ class Trainer:
         add_to_description(self.out / "avatar", {"metrics": metrics})
         _write_history(self.out / PSNR_CSV, history)
         plot_psnr_vs_time(history, self.out / "psnr_vs_time.png", title=_title(c, avatar))
-        _atomic_text(self.out / "metrics.json", json.dumps(metrics, indent=2))
+        write_bytes_atomically(self.out / "metrics.json", json.dumps(metrics, indent=2).encode())
         remove_checkpoints(self.out)  # the avatar supersedes them (GBs at 2048²)
         return FitResult(avatar, metrics, self.out)
 
@@ -484,10 +484,6 @@ def _write_history(path: Path, history: list) -> None:
     writer.writerow(["seconds", "iteration", "psnr"])
     writer.writerows(history)
     write_bytes_atomically(path, rows.getvalue().encode())
-
-
-def _atomic_text(path: Path, text: str) -> None:
-    write_bytes_atomically(path, text.encode())
 
 
 def _progress(total: int, initial: int, enabled: bool, desc: str = "fit"):

@@ -51,15 +51,26 @@ impl RowJournal {
         mut steps: PyReadwriteArrayDyn<'_, i32>,
     ) -> PyResult<()> {
         let channels = param.shape().last().copied().unwrap_or(0);
-        let mut state = SparseAdamState {
-            param: data_mut(&mut param, "param")?,
-            exp_avg: data_mut(&mut exp_avg, "exp_avg")?,
-            exp_avg_sq: data_mut(&mut exp_avg_sq, "exp_avg_sq")?,
-            steps: data_mut(&mut steps, "steps")?,
-            channels,
-        };
+        let mut state = adam_state(&mut param, &mut exp_avg, &mut exp_avg_sq, &mut steps, channels)?;
         self.journal.restore(&mut state).map_err(py_err)
     }
+}
+
+/// The optimiser's tables as the core's [`SparseAdamState`] with `channels` per row.
+fn adam_state<'a>(
+    param: &'a mut PyReadwriteArrayDyn<'_, f32>,
+    exp_avg: &'a mut PyReadwriteArrayDyn<'_, f32>,
+    exp_avg_sq: &'a mut PyReadwriteArrayDyn<'_, f32>,
+    steps: &'a mut PyReadwriteArrayDyn<'_, i32>,
+    channels: usize,
+) -> PyResult<SparseAdamState<'a>> {
+    Ok(SparseAdamState {
+        param: data_mut(param, "param")?,
+        exp_avg: data_mut(exp_avg, "exp_avg")?,
+        exp_avg_sq: data_mut(exp_avg_sq, "exp_avg_sq")?,
+        steps: data_mut(steps, "steps")?,
+        channels,
+    })
 }
 
 /// One sparse Adam step over `rows` of the `(N, C)` tables, saving rows into `journal`
@@ -85,13 +96,7 @@ pub fn sparse_adam_step<'py>(
     mut journal: Option<PyRefMut<'_, RowJournal>>,
 ) -> PyResult<(usize, usize, Bound<'py, PyArrayDyn<f32>>)> {
     let channels = lr.len();
-    let mut state = SparseAdamState {
-        param: data_mut(&mut param, "param")?,
-        exp_avg: data_mut(&mut exp_avg, "exp_avg")?,
-        exp_avg_sq: data_mut(&mut exp_avg_sq, "exp_avg_sq")?,
-        steps: data_mut(&mut steps, "steps")?,
-        channels,
-    };
+    let mut state = adam_state(&mut param, &mut exp_avg, &mut exp_avg_sq, &mut steps, channels)?;
     let (rows, grads, lr) = (data(&rows, "rows")?, data(&grads, "grads")?, data(&lr, "lr")?);
     let config = AdamConfig { beta1, beta2, eps };
     let journal = journal.as_deref_mut().map(|j| &mut j.journal);
