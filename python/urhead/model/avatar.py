@@ -20,8 +20,8 @@ import numpy as np
 import torch
 
 from urhead.camera import Camera
+from urhead.head.mesh import uniform_laplacian
 from urhead.head.model import HeadModel
-from urhead.losses import uniform_laplacian
 from urhead.model.layout import MapLayout
 from urhead.ops import (
     antialias,

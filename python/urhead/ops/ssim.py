@@ -1,4 +1,5 @@
-"""Masked SSIM and L1 image losses with Rust kernels (the training loop's loss stage).
+"""Mean SSIM (a similarity) and mean L1 (a loss) of two images inside a mask, with Rust
+kernels (the training loop's loss stage).
 
 Both kernels compute the value and, when ``image`` requires grad, its gradient in the same
 call (the SSIM gradient reuses the forward's blurred moments while they are in cache); the
@@ -19,7 +20,7 @@ from urhead.ops._bridge import check_tensor, float_dtype, kernel, to_numpy
 _NUMPY_DTYPES = {torch.float32: np.float32, torch.float64: np.float64}
 
 
-class _MaskedImageLoss(torch.autograd.Function):
+class _MaskedImageComparison(torch.autograd.Function):
     @staticmethod
     def forward(ctx, name, image, target, mask):
         dtype = image.dtype
@@ -53,23 +54,23 @@ def _apply(name: str, image, target, mask) -> torch.Tensor:
         if t is not None and isinstance(t, torch.Tensor) and t.requires_grad:
             raise InvalidArgumentError(
                 f"{arg} must not require grad: only image is differentiated "
-                "(use urhead.losses for a plain-torch loss differentiable in every input)"
+                "(urhead.losses falls back to plain torch, differentiable in every input)"
             )
     if mask is not None:
         check_tensor("mask", mask)
         if mask.dtype != dtype and mask.dtype in (torch.bool, torch.float32, torch.float64):
             # (H, W) is small next to the images; numpy converts without thread start-up
             mask = torch.from_numpy(mask.detach().numpy().astype(_NUMPY_DTYPES[dtype]))
-    return _MaskedImageLoss.apply(name, image, target, mask)
+    return _MaskedImageComparison.apply(name, image, target, mask)
 
 
-def ssim_loss(
+def masked_ssim(
     image: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None
 ) -> torch.Tensor:
     """Mean SSIM inside ``mask`` (a similarity: 1 for identical images), differentiable in
-    ``image``. Train with ``1 - ssim_loss(...)``.
+    ``image``. Train with ``1 - masked_ssim(...)``.
 
-    Per-pixel SSIM as :func:`urhead.losses.ssim_map` (Gaussian window 11, σ = 1.5, zero
+    Per-pixel SSIM as :func:`urhead.ops._reference.ssim_map` (Gaussian window 11, σ = 1.5, zero
     padding, C1 = 0.01², C2 = 0.03², mean over channels), then ``Σ m·ssim / max(Σ m, 1)``.
 
     Args:
@@ -83,9 +84,9 @@ def ssim_loss(
     return _apply("masked_ssim", image, target, mask)
 
 
-def l1_loss(
+def masked_l1(
     image: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None
 ) -> torch.Tensor:
     """Mean absolute difference inside ``mask``: ``Σ m·|image − target| / max(C·Σ m, 1)``,
-    differentiable in ``image`` (subgradient sign(0) = 0). Arguments as :func:`ssim_loss`."""
+    differentiable in ``image`` (subgradient sign(0) = 0). Arguments as :func:`masked_ssim`."""
     return _apply("masked_l1", image, target, mask)

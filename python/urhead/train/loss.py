@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from urhead.losses import l1, laplacian_loss, ssim
+from urhead.losses import l1, ssim
 from urhead.model.avatar import Render
 
 OFFSET_UNIT = 0.1
@@ -87,6 +87,13 @@ def normal_loss(render: Render, frame) -> torch.Tensor:
     weight = frame.mask.reshape(-1)[render.mesh.pixels] * (gt.abs().sum(-1) > 0)
     diff = (render.mesh.normals - gt).abs().sum(-1)
     return (diff * weight).sum() / weight.sum().clamp_min(1)
+
+
+def laplacian_loss(verts: torch.Tensor, laplacian: torch.Tensor) -> torch.Tensor:
+    """(1/V) Σ_i ‖δ_i‖² for (V, 3) or (B, V, 3) vertices (the paper's L_lap)."""
+    flat = verts.reshape(-1, verts.shape[-2], 3)
+    deltas = torch.stack([laplacian.to(v.dtype) @ v for v in flat])
+    return (deltas**2).sum(-1).mean()
 
 
 def uv_error_samples(render: Render, frame) -> tuple[torch.Tensor, torch.Tensor]:
