@@ -25,6 +25,8 @@ import torch.nn.functional as F
 from urhead.config import FitConfig
 from urhead.data.background import subject_background
 from urhead.eval import RefineSettings, evaluate_frames
+from urhead.eval.per_frame import FLAME_PARAMETERS, METRIC_REGION
+from urhead.eval.stlpips import load_stlpips
 from urhead.files import write_bytes_atomically
 from urhead.head import head_fingerprint
 from urhead.losses import psnr
@@ -43,7 +45,6 @@ from urhead.train.guard import StepGuard
 from urhead.train.loss import training_loss, uv_error_samples
 from urhead.train.plots import plot_psnr_vs_time
 from urhead.train.units import check_metres
-from urhead.use.stlpips import load_stlpips
 
 log = logging.getLogger("urhead.fit")
 
@@ -454,11 +455,8 @@ class Trainer:
             "refine_steps": c.refine_steps,
             "refine_full_steps": c.refine_full_steps,
             "rejected_steps": [asdict(e) for e in events],
-            "metric_region": "psnr, ssim: inside the foreground mask; *_full: the whole "
-            "image; on the subject's background",
-            "flame_parameters": "psnr*: held-out frames with their tracked FLAME parameters; "
-            "*_refined: after refine_steps Adam steps at <= 256 px, then refine_full_steps "
-            "at full size, on each held-out frame's FLAME row against the frozen avatar",
+            "metric_region": METRIC_REGION,
+            "flame_parameters": FLAME_PARAMETERS,
             "background": avatar.background.tolist(),
         }
         if stlpips_note is not None:
