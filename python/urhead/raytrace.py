@@ -19,10 +19,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-from urhead import _core
 from urhead._threads import num_threads
 from urhead.camera import Camera
 from urhead.errors import IndexRangeError, InvalidArgumentError, ShapeError
+from urhead.ops._bridge import native
 
 
 @dataclass(frozen=True)
@@ -133,7 +133,7 @@ class TriangleBvh:
 
     def __init__(self, vertices, faces):
         vertices = _vertices(vertices)
-        self._core = _core.TriangleBvh(vertices, _faces(faces, len(vertices)))
+        self._core = native("TriangleBvh")(vertices, _faces(faces, len(vertices)))
 
     @property
     def num_faces(self) -> int:
@@ -242,7 +242,7 @@ def raytrace(
         face_material = np.zeros(nf, np.int32)
     table = np.asarray([m.row() for m in materials], np.float32).reshape(-1, 8)
     decal_table = np.zeros((0, 12), np.float32) if decals is None else decals
-    out = _core.raytrace_render(
+    out = native("raytrace_render")(
         vertices,
         faces,
         f32("normals", normals, 3),

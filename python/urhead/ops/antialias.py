@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import torch
 
-from urhead import _core
 from urhead._threads import num_threads
 from urhead.camera import Camera
 from urhead.errors import DTypeError
@@ -16,6 +15,7 @@ from urhead.ops._bridge import (
     grad_to_numpy,
     index_tensor,
     kernel,
+    native,
     to_numpy,
 )
 from urhead.ops.rasterize import RasterOutput
@@ -37,7 +37,7 @@ def antialias_topology(faces: torch.Tensor, num_verts: int | None = None) -> tor
     check_shape("faces", faces, 2, 3, "(F, 3) int32")
     if num_verts is None:
         num_verts = int(faces.max()) + 1 if faces.numel() else 0
-    topo = _core.edge_topology(to_numpy("faces", faces, torch.int32), num_verts)
+    topo = native("edge_topology")(to_numpy("faces", faces, torch.int32), num_verts)
     return torch.from_numpy(topo)
 
 

@@ -232,3 +232,11 @@ macro_rules! lbs_entry_points {
 
 lbs_entry_points!(lbs_forward_f32, lbs_backward_f32, f32);
 lbs_entry_points!(lbs_forward_f64, lbs_backward_f64, f64);
+
+pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_function(wrap_pyfunction!(lbs_forward_f32, m)?)?;
+    m.add_function(wrap_pyfunction!(lbs_backward_f32, m)?)?;
+    m.add_function(wrap_pyfunction!(lbs_forward_f64, m)?)?;
+    m.add_function(wrap_pyfunction!(lbs_backward_f64, m)?)?;
+    Ok(())
+}

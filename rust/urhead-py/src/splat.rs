@@ -306,3 +306,16 @@ splat_entry_points!(
     splat_rasterize_backward_f64,
     f64
 );
+
+pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_class::<SplatState>()?;
+    m.add_function(wrap_pyfunction!(splat_project_forward_f32, m)?)?;
+    m.add_function(wrap_pyfunction!(splat_project_backward_f32, m)?)?;
+    m.add_function(wrap_pyfunction!(splat_rasterize_forward_f32, m)?)?;
+    m.add_function(wrap_pyfunction!(splat_rasterize_backward_f32, m)?)?;
+    m.add_function(wrap_pyfunction!(splat_project_forward_f64, m)?)?;
+    m.add_function(wrap_pyfunction!(splat_project_backward_f64, m)?)?;
+    m.add_function(wrap_pyfunction!(splat_rasterize_forward_f64, m)?)?;
+    m.add_function(wrap_pyfunction!(splat_rasterize_backward_f64, m)?)?;
+    Ok(())
+}
