@@ -12,6 +12,7 @@ import torch
 
 from urhead.camera import Camera
 from urhead.head import procedural_head
+from urhead.head.mesh import vertex_normals
 from urhead.model import (
     Avatar,
     ErrorAccumulator,
@@ -21,7 +22,7 @@ from urhead.model import (
     save_avatar,
     set_gaussians,
 )
-from urhead.model.init import fill_holes, initial_maps, texel_surface, vertex_normals
+from urhead.model.init import fill_holes, initial_maps, texel_surface
 from urhead.model.io import write_directory_atomically
 from urhead.ops import TextureGather
 from urhead.train.loss import nearest_pixel

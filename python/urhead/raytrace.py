@@ -22,6 +22,7 @@ import numpy as np
 from urhead._threads import num_threads
 from urhead.camera import Camera
 from urhead.errors import IndexRangeError, InvalidArgumentError, ShapeError
+from urhead.head.mesh import vertex_normals_numpy
 from urhead.ops._bridge import native
 
 
@@ -158,18 +159,6 @@ def _faces(faces, num_vertices: int) -> np.ndarray:
     return np.ascontiguousarray(faces, dtype=np.int32)
 
 
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(V, 3) area-weighted unit vertex normals (zero for unused vertices)."""
-    v = np.asarray(vertices, np.float64)
-    f = np.asarray(faces, np.int64)
-    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    n = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(n, f[:, k], fn)
-    length = np.linalg.norm(n, axis=1, keepdims=True)
-    return (n / np.maximum(length, 1e-30)).astype(np.float32)
-
-
 def raytrace(
     vertices,
     faces,
@@ -235,7 +224,7 @@ def raytrace(
     if bvh is not None and bvh.num_faces != nf:
         raise InvalidArgumentError(f"bvh was built over {bvh.num_faces} faces, the scene has {nf}")
     if normals is None:
-        normals = vertex_normals(vertices, faces)
+        normals = vertex_normals_numpy(vertices, faces)
     if colors is None:
         colors = np.full((nv, 3), 0.8, np.float32)
     if face_material is None:

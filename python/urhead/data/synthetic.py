@@ -33,10 +33,10 @@ import torch
 from urhead.camera import Camera
 from urhead.data.background import parse_background
 from urhead.data.manifest import MANIFEST, manifest_problem, write_manifest
-from urhead.data.subdivision import vertex_normals
 from urhead.data.synth_motion import FPS, MOTIONS, performance, tracking_noise
 from urhead.data.synth_scene import HAIR_MODES, MATERIALS, Strands, SubjectLook, build_look
 from urhead.data.writer import SubjectWriter
+from urhead.head.mesh import vertex_normals_numpy
 from urhead.raytrace import Light, TriangleBvh, raytrace
 
 GENERATOR_VERSION = 3
@@ -456,12 +456,12 @@ class _FrameRenderer:
         look = self.look
         coarse = verts.astype(np.float64)
         fine = look.S @ coarse
-        n0 = vertex_normals(fine, look.faces, look.normal_op)
+        n0 = vertex_normals_numpy(fine, look.faces, look.normal_op)
         disp = look.static_offset.astype(np.float64).copy()
         for name, field in look.wrinkle_fields.items():
             disp += activation.get(name, 0.0) * field
         fine = fine + disp[:, None] * n0
-        normals = vertex_normals(fine, look.faces, look.normal_op)
+        normals = vertex_normals_numpy(fine, look.faces, look.normal_op)
         parts = [(fine, look.faces, normals, look.colors, look.solid, look.face_material)]
         for strands in look.strands:
             if len(strands):

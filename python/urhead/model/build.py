@@ -9,6 +9,7 @@ import numpy as np
 import torch
 
 from urhead.errors import InvalidArgumentError
+from urhead.head.mesh import vertex_normals
 from urhead.head.model import HeadModel
 from urhead.model.avatar import Avatar, flame_rows
 from urhead.model.init import (
@@ -16,7 +17,6 @@ from urhead.model.init import (
     project_colors,
     surface_area,
     texel_surface,
-    vertex_normals,
 )
 from urhead.model.layout import MapLayout
 from urhead.model.sampling import UvSurface
