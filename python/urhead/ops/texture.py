@@ -149,14 +149,18 @@ class TextureGather:
 
     Args:
         tex: (Ht, Wt, C) texture, usually a parameter with ``requires_grad`` (samples then
-            require grad); autograd leaves its ``.grad`` alone — use :meth:`gradient`.
+            require grad).
+        accumulate: at the end of each backward pass that reached a lookup, add the
+            lookups' gradient (:meth:`gradient`) to ``tex.grad`` as a leaf parameter's
+            would be; otherwise ``tex.grad`` is left alone and :meth:`gradient` hands it out.
     """
 
-    def __init__(self, tex: torch.Tensor):
+    def __init__(self, tex: torch.Tensor, *, accumulate: bool = False):
         float_dtype("tex", tex)
         check_shape("tex", tex, 3, None, "(Ht, Wt, C)")
         self.source = tex  # an input of every lookup, so samples require grad when it does
         self.tex = tex.detach()
+        self.accumulate = accumulate
         self._uv: list[torch.Tensor] = []
         self._grad: list[torch.Tensor] = []
 
@@ -166,8 +170,18 @@ class TextureGather:
         return _GatheredTexture.apply(uv.contiguous(), self.source, self)
 
     def record(self, uv: torch.Tensor, v_out: torch.Tensor) -> None:
+        if self.accumulate and not self._uv:
+            # The first lookup this pass: one kernel call once every lookup has recorded.
+            torch.autograd.Variable._execution_engine.queue_callback(self._accumulate)
         self._uv.append(uv)
         self._grad.append(v_out)
+
+    def _accumulate(self) -> None:
+        grad = self.gradient()
+        if grad is None:
+            return
+        source = self.source
+        source.grad = grad if source.grad is None else source.grad + grad
 
     def gradient(self) -> torch.Tensor | None:
         """The recorded lookups' texture gradient as a coalesced sparse COO tensor of

@@ -260,7 +260,7 @@ class Trainer:
         for group in state.maps_opt.param_groups:
             group["lr"] = state.map_lr * uv_lr_factor(c, it)
         row_params = F.embedding(torch.tensor([row]), avatar.frame_params, sparse=True)[0]
-        gather = TextureGather(avatar.maps)
+        gather = TextureGather(avatar.maps, accumulate=True)  # backward fills maps.grad
         render = avatar.render(
             avatar.split_params(row_params),
             frame.camera,
@@ -283,7 +283,6 @@ class Trainer:
             lambda_alpha=c.lambda_alpha,
         )
         loss.backward()
-        avatar.maps.grad = gather.gradient()
         if state.guard.step(it, row, loss.detach()):  # applies the step, or undoes it
             if self.adaptive:
                 state.accumulator.add(*uv_error_samples(render, frame))
