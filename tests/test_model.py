@@ -51,9 +51,7 @@ def make_avatar(head, gaussians=True, sh_degree=1, resolution=32, count=200) -> 
     )
     t = avatar.tables()
     raster = texel_surface(head, resolution)
-    avatar.maps = initial_maps(
-        layout, resolution, t["lbs"]["v_template"], t["faces"], raster, None, 0.004
-    )
+    avatar.maps = initial_maps(layout, resolution, t.lbs.v_template, t.faces, raster, None, 0.004)
     if gaussians:
         surface = UvSurface(head.uv_coords, head.uv_faces)
         set_gaussians(avatar, surface, surface.uniform(count, np.random.default_rng(0)))
@@ -336,3 +334,22 @@ def test_silhouette_loss_is_the_coverage_error_and_moves_opacity_and_the_pose(he
     opacity = gather.gradient().coalesce().values()[:, avatar.layout.opacity]
     assert opacity.abs().sum() > 0
     assert params.pose.grad is not None and params.pose.grad.abs().sum() > 0
+
+
+def test_pixel_rays_are_kept_for_the_last_camera_only():
+    from urhead.camera import Camera
+    from urhead.model.avatar import PixelRays
+
+    k = torch.tensor([[10.0, 0, 4], [0, 10.0, 3], [0, 0, 1]])
+    camera = Camera(k, torch.eye(4), 8, 6)
+    rays = PixelRays()
+    first = rays(camera)
+    assert first.shape == (48, 3)
+    assert torch.allclose(first.norm(dim=-1), torch.ones(48))
+    # Pixel (3, 2) has its centre half a pixel off the principal point (4, 3) each way.
+    expected = torch.tensor([-0.05, -0.05, 1.0])
+    assert torch.allclose(first[2 * 8 + 3], expected / expected.norm())
+    assert rays(camera) is first
+    smaller = rays(camera.resized(4, 3))
+    assert smaller.shape == (12, 3)
+    assert rays(camera) is not first and torch.equal(rays(camera), first)

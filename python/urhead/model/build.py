@@ -87,8 +87,8 @@ def build_avatar(
         depth_eps=depth_eps,
     )
     tables = avatar.tables()
-    faces = tables["faces"]
-    rest = tables["lbs"]["v_template"]
+    faces = tables.faces
+    rest = tables.lbs.v_template
     uv_raster = texel_surface(head, resolution)
     colors = None
     if color_frames > 0:
@@ -98,7 +98,7 @@ def build_avatar(
         with torch.no_grad():
             for i in picks:
                 p = avatar.split_params(params[int(i)])
-                out = lbs(p.expr[None], p.pose[None], transl=p.transl[None], **tables["lbs"])
+                out = lbs(p.expr[None], p.pose[None], transl=p.transl[None], **tables.lbs)
                 posed.append(out.verts[0].contiguous())
                 normals.append(vertex_normals(out.verts[0], faces))
         colors = project_colors(posed, frames, faces, uv_raster, normals)

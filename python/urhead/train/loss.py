@@ -15,9 +15,12 @@ not penalised and only D is smoothed (our reading of "suppress noisy displacemen
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import torch
 
+from urhead.head.mesh import uniform_laplacian
 from urhead.losses import l1, ssim
 from urhead.model.avatar import Render
 
@@ -25,46 +28,62 @@ OFFSET_UNIT = 0.1
 """metres: the Gaussian offset regulariser is the mean of (E / OFFSET_UNIT)²."""
 
 
-def training_loss(
-    render: Render,
-    frame,
-    *,
-    lambda_ssim: float,
-    mesh_term: float,
-    lambda_normal: float,
-    lambda_laplacian: float,
-    laplacian: torch.Tensor,
-    use_normals: bool,
-    lambda_offset: float = 0.0,
-    lambda_alpha: float = 0.0,
-) -> torch.Tensor:
-    """The loss (a scalar) of one rendered training frame (a dataset :class:`Frame`)."""
-    target = frame.image
-    image = render.image
-    l1_full = l1(image, target)
-    photo = l1_full
-    if render.gaussians is not None and mesh_term > 0:
-        l1_mesh = l1(render.mesh.image, target)
-        photo = (1 - mesh_term) * l1_full + mesh_term * l1_mesh
-    total = (1 - lambda_ssim) * photo
-    if lambda_ssim > 0:
-        d_ssim = 1 - ssim(image, target)
-        total = total + lambda_ssim * d_ssim
-    if use_normals and lambda_normal > 0:
-        normal = normal_loss(render, frame)
-        total = total + lambda_normal * normal
-    if lambda_laplacian > 0:
-        lap = laplacian_loss(render.mesh.offsets, laplacian)
-        total = total + lambda_laplacian * lap
-    if lambda_alpha > 0:
-        sil = silhouette_loss(render, frame)
-        total = total + lambda_alpha * sil
-    offset = render.gaussians.lift.offset if render.gaussians is not None else None
-    if offset is not None and lambda_offset > 0 and offset.numel():
-        # In units of (100 mm)²: a hair shell of ~1 cm costs 1 % of λ per Gaussian.
-        reg = (offset / OFFSET_UNIT).square().mean()
-        total = total + lambda_offset * reg
-    return total
+@dataclass(frozen=True, eq=False)
+class Objective:
+    """The training objective of one fit (module docstring): its weights, and the mesh's
+    uniform Laplacian (V, V) for L_lap, built once. Call it on a rendered training frame."""
+
+    lambda_ssim: float
+    mesh_term: float
+    lambda_normal: float
+    lambda_laplacian: float
+    laplacian: torch.Tensor
+    use_normals: bool
+    lambda_offset: float = 0.0
+    lambda_alpha: float = 0.0
+
+    @classmethod
+    def for_fit(cls, config, head, use_normals: bool) -> Objective:
+        """The objective a :class:`~urhead.config.FitConfig` asks for, on ``head``'s mesh."""
+        return cls(
+            lambda_ssim=config.lambda_ssim,
+            mesh_term=config.mesh_term,
+            lambda_normal=config.lambda_normal,
+            lambda_laplacian=config.lambda_laplacian,
+            laplacian=uniform_laplacian(torch.tensor(head.faces), head.num_vertices),
+            use_normals=use_normals,
+            lambda_offset=config.lambda_offset,
+            lambda_alpha=config.lambda_alpha,
+        )
+
+    def __call__(self, render: Render, frame) -> torch.Tensor:
+        """The loss (a scalar) of one rendered training frame (a dataset :class:`Frame`)."""
+        target = frame.image
+        image = render.image
+        l1_full = l1(image, target)
+        photo = l1_full
+        if render.gaussians is not None and self.mesh_term > 0:
+            l1_mesh = l1(render.mesh.image, target)
+            photo = (1 - self.mesh_term) * l1_full + self.mesh_term * l1_mesh
+        total = (1 - self.lambda_ssim) * photo
+        if self.lambda_ssim > 0:
+            d_ssim = 1 - ssim(image, target)
+            total = total + self.lambda_ssim * d_ssim
+        if self.use_normals and self.lambda_normal > 0:
+            normal = normal_loss(render, frame)
+            total = total + self.lambda_normal * normal
+        if self.lambda_laplacian > 0:
+            lap = laplacian_loss(render.mesh.offsets, self.laplacian)
+            total = total + self.lambda_laplacian * lap
+        if self.lambda_alpha > 0:
+            sil = silhouette_loss(render, frame)
+            total = total + self.lambda_alpha * sil
+        offset = render.gaussians.lift.offset if render.gaussians is not None else None
+        if offset is not None and self.lambda_offset > 0 and offset.numel():
+            # In units of (100 mm)²: a hair shell of ~1 cm costs 1 % of λ per Gaussian.
+            reg = (offset / OFFSET_UNIT).square().mean()
+            total = total + self.lambda_offset * reg
+        return total
 
 
 def coverage(render: Render) -> torch.Tensor:

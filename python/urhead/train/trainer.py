@@ -42,7 +42,7 @@ from urhead.train.checkpoint import (
     save_checkpoint,
 )
 from urhead.train.guard import StepGuard
-from urhead.train.loss import training_loss, uv_error_samples
+from urhead.train.loss import Objective, uv_error_samples
 from urhead.train.plots import plot_psnr_vs_time
 from urhead.train.units import check_metres
 
@@ -116,6 +116,7 @@ class Trainer:
         self.out = Path(out)
         self.progress = progress
         self.use_normals = bool(config.normal_loss and subject.has_normals)
+        self.objective = Objective.for_fit(config, head, self.use_normals)
         self.gaussians = bool(config.gaussians)
         self.adaptive = self.gaussians and config.sampling == "adaptive"
         self.held_out = subject.test if len(subject.test) else subject.val
@@ -270,18 +271,7 @@ class Trainer:
             gather=gather,
             sh_degree=active_sh_degree(c, it),
         )
-        loss = training_loss(
-            render,
-            frame,
-            lambda_ssim=c.lambda_ssim,
-            mesh_term=c.mesh_term,
-            lambda_normal=c.lambda_normal,
-            lambda_laplacian=c.lambda_laplacian,
-            laplacian=avatar.tables()["laplacian"],
-            use_normals=self.use_normals,
-            lambda_offset=c.lambda_offset,
-            lambda_alpha=c.lambda_alpha,
-        )
+        loss = self.objective(render, frame)
         loss.backward()
         if state.guard.step(it, row, loss.detach()):  # applies the step, or undoes it
             if self.adaptive:
