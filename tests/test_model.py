@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -24,8 +25,8 @@ from urhead.model import (
 )
 from urhead.model.init import fill_holes, initial_maps, texel_surface
 from urhead.model.io import write_directory_atomically
+from urhead.model.sampling import nearest_pixel
 from urhead.ops import TextureGather
-from urhead.train.loss import nearest_pixel
 
 
 @pytest.fixture(scope="module")
@@ -353,3 +354,45 @@ def test_pixel_rays_are_kept_for_the_last_camera_only():
     smaller = rays(camera.resized(4, 3))
     assert smaller.shape == (12, 3)
     assert rays(camera) is not first and torch.equal(rays(camera), first)
+
+
+def test_sampler_resamples_on_its_schedule_and_round_trips_its_state(head):
+    from dataclasses import replace as with_options
+
+    from urhead.config import FitConfig
+    from urhead.model import GaussianSampler
+
+    config = with_options(
+        FitConfig(),
+        iterations=20,
+        uv_resolution=32,
+        error_grid=8,
+        sample_every=10,
+        sample_cap=40,
+        initial_gaussians=200,
+        max_gaussians=230,
+        prune_opacity=0.0,
+    )
+    avatar = make_avatar(head, count=200)
+    sampler = GaussianSampler(config, head, avatar.num_gaussians)
+    with torch.no_grad():
+        render = avatar.render(avatar.frame(3), camera())
+    frame = SimpleNamespace(image=torch.rand(48, 48, 3), mask=torch.ones(48, 48), camera=camera())
+    sampler.observe(render, frame)
+    assert sampler.accumulator.count.sum() > 0
+    assert sampler.max_radius.shape == (200,) and sampler.max_radius.max() > 0
+
+    restored = GaussianSampler(config, head, avatar.num_gaussians)
+    restored.load_state(sampler.state())
+    assert torch.equal(restored.accumulator.error, sampler.accumulator.error)
+    assert torch.equal(restored.max_radius, sampler.max_radius)
+
+    uv = avatar.gaussian_uv.clone()
+    sampler.step_end(avatar, frame, 9)  # off the schedule: nothing moves
+    assert torch.equal(avatar.gaussian_uv, uv)
+    sampler.step_end(avatar, frame, 10)  # adds new ones where the error is, within budget
+    grown = avatar.num_gaussians
+    assert 200 < grown <= 230
+    assert sampler.accumulator.count.sum() == 0 and sampler.max_radius.shape == (grown,)
+    sampler.step_end(avatar, frame, 20)  # never after the last iteration
+    assert avatar.num_gaussians == grown

@@ -19,7 +19,7 @@ from urhead.model.init import (
     texel_surface,
 )
 from urhead.model.layout import MapLayout
-from urhead.model.sampling import UvSurface
+from urhead.model.sampling import UvSurface, set_gaussians
 from urhead.ops import lbs
 
 
@@ -111,19 +111,3 @@ def build_avatar(
         surface = UvSurface(head.uv_coords, head.uv_faces)
         set_gaussians(avatar, surface, surface.uniform(initial_gaussians, rng))
     return avatar
-
-
-def set_gaussians(avatar: Avatar, surface: UvSurface, uv: np.ndarray) -> None:
-    """Replaces the avatar's Gaussians by those at UV points ``uv`` (N, 2) on the atlas,
-    ordered by 32-texel tile of the maps and then row-major inside it, so the lookups of
-    neighbouring Gaussians hit the same cache lines of a 2048² map."""
-    r = avatar.resolution
-    col = np.clip((uv[:, 0] * r).astype(np.int64), 0, r - 1)
-    row = np.clip(((1 - uv[:, 1]) * r).astype(np.int64), 0, r - 1)
-    uv = uv[np.lexsort((col, row, col // 32, row // 32))]
-    face, bary = surface.locate(uv)
-    if (face < 0).any():
-        raise InvalidArgumentError("Gaussian UV points must lie on the atlas")
-    avatar.gaussian_uv = torch.from_numpy(np.ascontiguousarray(uv, np.float32))
-    avatar.gaussian_face = torch.from_numpy(face)
-    avatar.gaussian_bary = torch.from_numpy(bary.astype(np.float32))

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 
 from urhead.head.mesh import uniform_laplacian
@@ -113,42 +112,3 @@ def laplacian_loss(verts: torch.Tensor, laplacian: torch.Tensor) -> torch.Tensor
     flat = verts.reshape(-1, verts.shape[-2], 3)
     deltas = torch.stack([laplacian.to(v.dtype) @ v for v in flat])
     return (deltas**2).sum(-1).mean()
-
-
-def uv_error_samples(render: Render, frame) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per-pixel photometric error ‖I − I_gt‖₁ inside the mask, paired with the UV
-    coordinate it is charged to: a covered pixel's own UV; a pixel inside the mask that the
-    mesh misses (hair volume, a silhouette the mesh has not reached) is charged to the
-    nearest covered pixel, so that error draws Gaussians to the surface next to it.
-
-    Returns ``(uv (Q, 2), error (Q,))``.
-    """
-    h, w = frame.mask.shape
-    error = ((render.image.detach() - frame.image).abs().sum(-1) * frame.mask).reshape(-1)
-    pixels = render.mesh.pixels
-    if pixels.numel() == 0:
-        return render.mesh.uv, error[:0]
-    covered = torch.zeros(h * w, dtype=torch.bool)
-    covered[pixels] = True
-    missed = ((frame.mask.reshape(-1) > 0.5) & ~covered).nonzero()[:, 0]
-    if missed.numel() == 0:
-        return render.mesh.uv, error[pixels]
-    nearest = nearest_pixel(covered.reshape(h, w))[missed]
-    slot = torch.empty(h * w, dtype=torch.int64)
-    slot[pixels] = torch.arange(pixels.numel())
-    uv = torch.cat([render.mesh.uv, render.mesh.uv[slot[nearest]]])
-    return uv, torch.cat([error[pixels], error[missed]])
-
-
-def nearest_pixel(covered: torch.Tensor) -> torch.Tensor:
-    """(H·W,) int64: for every pixel, the flat index of the nearest ``covered`` pixel
-    (itself when covered); needs at least one covered pixel."""
-    import cv2
-
-    free = (~covered).numpy().astype(np.uint8)
-    _, labels = cv2.distanceTransformWithLabels(
-        free, cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_PIXEL
-    )
-    # Labels number the zero (covered) pixels 1, 2, … in scan order.
-    seeds = covered.reshape(-1).nonzero()[:, 0]
-    return seeds[torch.from_numpy(labels.reshape(-1).astype(np.int64)) - 1]
