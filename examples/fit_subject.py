@@ -30,7 +30,7 @@ from urhead._threads import configure_threads
 from urhead.config import FIT_PRESETS, FitConfig
 from urhead.data import load_subject
 from urhead.data.images import to_uint8, write_png
-from urhead.data.synthetic import SynthConfig, synthesize
+from urhead.data.synth.subject import SynthConfig, synthesize
 from urhead.eval import exact_flame_scores
 from urhead.eval.metrics import frame_params
 from urhead.files import write_bytes_atomically, write_file_atomically

@@ -9,10 +9,10 @@ import pytest
 import torch
 
 from urhead import Camera
+from urhead.data.synth.raytrace import Light, Material, raytrace
 from urhead.head import procedural_head
 from urhead.head.mesh import vertex_normals_numpy
 from urhead.ops import interpolate, rasterize
-from urhead.raytrace import Light, Material, raytrace
 
 
 @pytest.fixture(scope="module")

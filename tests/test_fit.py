@@ -21,7 +21,7 @@ import torch
 from urhead.cli import main
 from urhead.config import FitConfig
 from urhead.data import load_subject
-from urhead.data.synthetic import SynthConfig, synthesize
+from urhead.data.synth.subject import SynthConfig, synthesize
 from urhead.eval.metrics import frame_params
 from urhead.eval.stlpips import load_stlpips
 from urhead.head import procedural_head

@@ -8,7 +8,7 @@ import torch.nn.functional as F
 from urhead.head.mesh import uniform_laplacian
 from urhead.losses import l1, psnr, ssim
 from urhead.ops._reference import ssim_map
-from urhead.train.loss import laplacian_loss
+from urhead.train.objective import laplacian_loss
 
 
 def reference_ssim_map(x, y):

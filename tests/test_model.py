@@ -23,7 +23,7 @@ from urhead.model import (
     save_avatar,
     set_gaussians,
 )
-from urhead.model.init import fill_holes, initial_maps, texel_surface
+from urhead.model.initial_maps import fill_holes, initial_maps, texel_surface
 from urhead.model.io import write_directory_atomically
 from urhead.model.sampling import nearest_pixel
 from urhead.ops import TextureGather
@@ -314,7 +314,7 @@ def test_silhouette_loss_is_the_coverage_error_and_moves_opacity_and_the_pose(he
     reaches the opacity map and the frame's pose (through the antialiased silhouette)."""
     from types import SimpleNamespace
 
-    from urhead.train.loss import coverage, silhouette_loss
+    from urhead.train.objective import coverage, silhouette_loss
 
     avatar = make_avatar(head)
     avatar.maps.requires_grad_(True)

@@ -21,7 +21,7 @@ import torch
 
 from urhead.camera import Camera
 from urhead.head.model import HeadModel, LbsTables
-from urhead.model.layout import MapLayout
+from urhead.model.map_layout import MapLayout
 from urhead.ops import (
     antialias,
     antialias_topology,

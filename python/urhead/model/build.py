@@ -12,13 +12,13 @@ from urhead.errors import InvalidArgumentError
 from urhead.head.mesh import vertex_normals
 from urhead.head.model import HeadModel
 from urhead.model.avatar import Avatar, flame_rows
-from urhead.model.init import (
+from urhead.model.initial_maps import (
     initial_maps,
     project_colors,
     surface_area,
     texel_surface,
 )
-from urhead.model.layout import MapLayout
+from urhead.model.map_layout import MapLayout
 from urhead.model.sampling import UvSurface, set_gaussians
 from urhead.ops import lbs
 

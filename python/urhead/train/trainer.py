@@ -42,7 +42,7 @@ from urhead.train.checkpoint import (
     save_checkpoint,
 )
 from urhead.train.guard import StepGuard
-from urhead.train.loss import Objective
+from urhead.train.objective import Objective
 from urhead.train.plots import plot_psnr_vs_time
 from urhead.train.units import check_metres
 

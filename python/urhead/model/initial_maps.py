@@ -11,7 +11,7 @@ import torch
 import torch.nn.functional as F
 
 from urhead.head.mesh import vertex_normals
-from urhead.model.layout import MapLayout
+from urhead.model.map_layout import MapLayout
 from urhead.ops import interpolate, rasterize, rasterize_uv
 from urhead.sh import rgb_to_sh_dc
 
