@@ -53,14 +53,9 @@ def from_numpy(a: np.ndarray | None) -> torch.Tensor | None:
 
 
 def native(name: str):
-    """The Rust entry point (function or class) ``name`` of ``urhead._core``."""
+    """The Rust entry point (function or class) ``name`` of ``urhead._core``; a kernel's
+    entry serves float32 and float64 (the dtype of its first float array)."""
     return getattr(_core, name)
-
-
-def kernel(name: str, dtype: torch.dtype):
-    """The Rust entry point ``name`` for ``dtype`` (``lbs_forward`` → ``lbs_forward_f32``)."""
-    suffix = {torch.float32: "f32", torch.float64: "f64"}[dtype]
-    return native(f"{name}_{suffix}")
 
 
 def index_tensor(name: str, t: torch.Tensor) -> torch.Tensor:

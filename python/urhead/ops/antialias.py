@@ -14,7 +14,6 @@ from urhead.ops._bridge import (
     from_numpy,
     grad_to_numpy,
     index_tensor,
-    kernel,
     native,
     to_numpy,
 )
@@ -53,7 +52,7 @@ class _Antialias(torch.autograd.Function):
             to_numpy("faces", faces, torch.int32),
             to_numpy("topology", topology, torch.int32),
         )
-        out = kernel("antialias_forward", dtype)(*arrays, camera.core_args(), num_threads())
+        out = native("antialias_forward")(*arrays, camera.core_args(), num_threads())
         ctx.set_materialize_grads(False)
         ctx.save_for_backward(color, verts, tri_id, depth, faces, topology)
         ctx.camera = camera
@@ -66,7 +65,7 @@ class _Antialias(torch.autograd.Function):
             return (None,) * 7
         color, verts, tri_id, depth, faces, topology = ctx.saved_tensors
         dtype = color.dtype
-        v_color, v_verts = kernel("antialias_backward", dtype)(
+        v_color, v_verts = native("antialias_backward")(
             color.detach().numpy(),
             tri_id.numpy(),
             depth.detach().numpy(),

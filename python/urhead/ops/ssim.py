@@ -15,14 +15,14 @@ from torch.autograd.function import once_differentiable
 
 from urhead._threads import num_threads
 from urhead.errors import InvalidArgumentError
-from urhead.ops._bridge import check_tensor, float_dtype, kernel, to_numpy
+from urhead.ops._bridge import check_tensor, float_dtype, native, to_numpy
 
 _NUMPY_DTYPES = {torch.float32: np.float32, torch.float64: np.float64}
 
 
 class _MaskedImageComparison(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, name, image, target, mask):
+    def forward(ctx, metric, image, target, mask):
         dtype = image.dtype
         args = (
             to_numpy("image", image, dtype),
@@ -31,10 +31,10 @@ class _MaskedImageComparison(torch.autograd.Function):
         )
         ctx.set_materialize_grads(False)
         if ctx.needs_input_grad[1]:
-            value, grad = kernel(f"{name}_grad", dtype)(*args, num_threads())
+            value, grad = native("masked_mean_grad")(metric, *args, num_threads())
             ctx.save_for_backward(torch.from_numpy(grad))
         else:
-            value = kernel(name, dtype)(*args, num_threads())
+            value = native("masked_mean")(metric, *args, num_threads())
         return torch.tensor(value, dtype=dtype)
 
     @staticmethod
@@ -48,7 +48,7 @@ class _MaskedImageComparison(torch.autograd.Function):
         return None, torch.from_numpy(scaled), None, None
 
 
-def _apply(name: str, image, target, mask) -> torch.Tensor:
+def _apply(metric: str, image, target, mask) -> torch.Tensor:
     dtype = float_dtype("image", image)
     for arg, t in (("target", target), ("mask", mask)):
         if t is not None and isinstance(t, torch.Tensor) and t.requires_grad:
@@ -61,7 +61,7 @@ def _apply(name: str, image, target, mask) -> torch.Tensor:
         if mask.dtype != dtype and mask.dtype in (torch.bool, torch.float32, torch.float64):
             # (H, W) is small next to the images; numpy converts without thread start-up
             mask = torch.from_numpy(mask.detach().numpy().astype(_NUMPY_DTYPES[dtype]))
-    return _MaskedImageComparison.apply(name, image, target, mask)
+    return _MaskedImageComparison.apply(metric, image, target, mask)
 
 
 def masked_ssim(
@@ -81,7 +81,7 @@ def masked_ssim(
     Returns:
         A 0-dim tensor of ``image``'s dtype. An all-zero mask gives 0 with zero gradient.
     """
-    return _apply("masked_ssim", image, target, mask)
+    return _apply("ssim", image, target, mask)
 
 
 def masked_l1(
@@ -89,4 +89,4 @@ def masked_l1(
 ) -> torch.Tensor:
     """Mean absolute difference inside ``mask``: ``Σ m·|image − target| / max(C·Σ m, 1)``,
     differentiable in ``image`` (subgradient sign(0) = 0). Arguments as :func:`masked_ssim`."""
-    return _apply("masked_l1", image, target, mask)
+    return _apply("l1", image, target, mask)

@@ -6,14 +6,14 @@ import torch
 
 from urhead._threads import num_threads
 from urhead.errors import DTypeError
-from urhead.ops._bridge import check_shape, float_dtype, from_numpy, grad_to_numpy, kernel, to_numpy
+from urhead.ops._bridge import check_shape, float_dtype, from_numpy, grad_to_numpy, native, to_numpy
 
 
 def _sample(tex: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     """The Rust bilinear lookup: (Ht, Wt, C) at (..., 2) → (..., C)."""
     dtype = tex.dtype
     flat_uv = uv.reshape(-1, 2) if uv.is_contiguous() else uv
-    out = kernel("texture_forward", dtype)(
+    out = native("texture_forward")(
         to_numpy("tex", tex, dtype), to_numpy("uv", flat_uv, dtype), num_threads()
     )
     return torch.from_numpy(out).reshape(*uv.shape[:-1], tex.shape[-1])
@@ -46,7 +46,7 @@ class _Texture(torch.autograd.Function):
         tex, uv = ctx.saved_tensors
         dtype = tex.dtype
         channels = tex.shape[-1]
-        indices, values, v_uv = kernel("texture_backward", dtype)(
+        indices, values, v_uv = native("texture_backward")(
             tex.detach().numpy(),
             uv.detach().reshape(-1, 2).numpy(),
             grad_to_numpy("v_out", v_out.reshape(-1, channels), dtype),
@@ -127,7 +127,7 @@ class _GatheredTexture(torch.autograd.Function):
         gather.record(flat_uv, v_out)
         if not ctx.needs_input_grad[0]:
             return None, None, None
-        _, _, v_uv = kernel("texture_backward", gather.tex.dtype)(
+        _, _, v_uv = native("texture_backward")(
             gather.tex.numpy(),
             flat_uv.numpy(),
             grad_to_numpy("v_out", v_out, gather.tex.dtype),
@@ -192,7 +192,7 @@ class TextureGather:
         self._uv.clear()
         self._grad.clear()
         dtype = self.tex.dtype
-        indices, values, _ = kernel("texture_backward", dtype)(
+        indices, values, _ = native("texture_backward")(
             self.tex.numpy(),
             uv.numpy(),
             grad_to_numpy("v_out", v_out, dtype),
