@@ -26,6 +26,7 @@ import numpy as np
 import torch
 from tqdm.contrib.logging import logging_redirect_tqdm
 
+from urhead._atomic import write_bytes_atomically, write_file_atomically
 from urhead._threads import configure_threads
 from urhead.config import FIT_PRESETS, FitConfig
 from urhead.data import load_subject
@@ -33,7 +34,6 @@ from urhead.data.images import to_uint8, write_png
 from urhead.data.synth.subject import SynthConfig, synthesize
 from urhead.eval import exact_flame_scores
 from urhead.eval.metrics import frame_params
-from urhead.files import write_bytes_atomically, write_file_atomically
 from urhead.head import procedural_head
 from urhead.train.trainer import Trainer
 

@@ -17,6 +17,7 @@ from typing import BinaryIO
 import numpy as np
 import torch
 
+from urhead._atomic import write_file_atomically
 from urhead.errors import (
     DTypeError,
     IndexRangeError,
@@ -24,7 +25,6 @@ from urhead.errors import (
     ShapeError,
     reading,
 )
-from urhead.files import write_file_atomically
 
 FORMAT_VERSION = 1
 """Version of the ``.npz`` head format written by :func:`save_head`."""

@@ -22,12 +22,12 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from urhead._atomic import write_bytes_atomically
 from urhead.config import FitConfig
 from urhead.data.background import subject_background
 from urhead.eval import RefineSettings, evaluate_frames
 from urhead.eval.per_frame import FLAME_PARAMETERS, METRIC_REGION
 from urhead.eval.stlpips import load_stlpips
-from urhead.files import write_bytes_atomically
 from urhead.head import head_fingerprint
 from urhead.losses import psnr
 from urhead.model import GaussianSampler, build_avatar, save_avatar

@@ -35,6 +35,7 @@ from pathlib import Path
 
 import torch
 
+from urhead._atomic import write_file_atomically
 from urhead._progress import progress as progress_bar
 from urhead.eval import RefineSettings, evaluate_frames, refine_params_of
 from urhead.eval.metrics import frame_params
@@ -45,7 +46,6 @@ from urhead.eval.per_frame import (
     score_frames,
     variance,
 )
-from urhead.files import write_file_atomically
 from urhead.use.common import (
     add_background_option,
     check_output_file,
