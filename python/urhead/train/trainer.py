@@ -282,7 +282,7 @@ class Trainer:
             map_lr=map_lr,
             guard=StepGuard(avatar, maps_opt, frames_opt, map_lr, start=saved["iteration"]),
             accumulator=ErrorAccumulator(min(c.error_grid, c.uv_resolution)),
-            surface=UvSurface(self.head.uv_coords, self.head.uv_faces),
+            surface=UvSurface(avatar.head.uv_coords, avatar.head.uv_faces),
             max_radius=torch.zeros(avatar.num_gaussians, dtype=torch.int32),
             iteration=saved["iteration"],
             seconds=saved["seconds"],
