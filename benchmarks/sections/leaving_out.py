@@ -58,7 +58,7 @@ TIMING_BLOCKS, TIMING_STEPS = 5, 20
 
 
 def fit_config(keep: str) -> FitConfig:
-    return replace(FitConfig(), **FIT_PRESETS["quick"], keep=keep, eval_every_seconds=1e9)
+    return replace(FitConfig(), **{**FIT_PRESETS["quick"], "keep": keep, "eval_every_seconds": 1e9})
 
 
 def _subject_dir() -> Path:
