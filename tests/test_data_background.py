@@ -172,7 +172,7 @@ def test_synth_background_option(tmp_path):
         black.cache_key()
     )
     # a white (talking, metric) subject keeps the cache key it had before those fields existed
-    later = ("background", "motion", "length_unit")
+    later = ("background", "motion", "length_unit", "mouth", "gaze")
     fields = {k: v for k, v in asdict(tiny.resolved()).items() if k not in later}
     before = json.dumps({"generator_version": GENERATOR_VERSION, **fields}, sort_keys=True)
     assert tiny.cache_key() == hashlib.sha256(before.encode()).hexdigest()[:16]

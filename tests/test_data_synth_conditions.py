@@ -208,3 +208,40 @@ def test_flat_light_shows_the_albedo_in_any_pose(yaw_deg):
     # The default albedo (0.8) times the uniform ambient at every pixel.
     assert np.allclose(render("flat"), 0.8 * np.array(LIGHTS["flat"].ambient_up), atol=1e-5)
     assert render("key").std() > render("soft").std() > 0.02
+
+
+def test_closed_mouth_and_fixed_gaze_change_only_the_mouth_and_the_eyes():
+    from urhead.data.synth.motion import performance
+    from urhead.head.procedural import EXPRESSION_NAMES
+
+    def perf(**kwargs):
+        rng = np.random.default_rng(4)
+        names = tuple(EXPRESSION_NAMES)
+        return performance(rng, 200, names, 20, max_yaw_deg=30.0, expression_scale=1.0, **kwargs)
+
+    talking, closed, still = perf(), perf(mouth="closed"), perf(gaze="fixed")
+    assert talking.pose[:, 6].max() > 0.1 and np.all(closed.pose[:, 6:9] == 0)
+    parted = [EXPRESSION_NAMES.index(n) for n in ("pucker", "funnel", "lower_lip_down")]
+    assert np.all(closed.expr[:, parted] == 0) and talking.expr[:, parted].max() > 0
+    smile = EXPRESSION_NAMES.index("smile")
+    assert np.array_equal(closed.expr[:, smile], talking.expr[:, smile])
+    assert np.abs(talking.pose[:, 9:15]).max() > 0.1 and np.all(still.pose[:, 9:15] == 0)
+    assert np.array_equal(still.pose[:, :9], talking.pose[:, :9])
+    assert np.array_equal(closed.pose[:, 1], talking.pose[:, 1])  # the same head turns
+    assert not np.array_equal(closed.pose[:, 0], talking.pose[:, 0])  # without speech nods
+
+
+def test_mouth_and_gaze_are_options_in_the_cache_key():
+    base = SynthConfig()
+    keys = {base.cache_key(), replace(base, mouth="closed").cache_key()}
+    keys.add(replace(base, gaze="fixed").cache_key())
+    assert len(keys) == 3
+    assert SynthConfig(mouth="talking", gaze="moving").cache_key() == base.cache_key()
+    args = build_parser().parse_args(
+        ["synth", "--out", "x", "--mouth", "closed", "--gaze", "fixed"]
+    )
+    config = config_from_args(args)
+    assert (config.mouth, config.gaze) == ("closed", "fixed")
+    for bad in ({"mouth": "open"}, {"gaze": "wild"}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            SynthConfig(**bad)

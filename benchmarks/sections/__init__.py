@@ -15,4 +15,12 @@ To add a section (e.g. a whole-iteration breakdown calling the trainer), write t
 and add its name to ``SECTIONS``.
 """
 
-SECTIONS = ["kernels", "splatting", "rendering", "iteration", "quality", "conditions"]
+SECTIONS = [
+    "kernels",
+    "splatting",
+    "rendering",
+    "iteration",
+    "quality",
+    "conditions",
+    "leaving_out",
+]

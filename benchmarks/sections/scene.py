@@ -33,6 +33,8 @@ def paper_scene(num_gaussians: int = 24_000, uv_resolution: int = 2048):
         iterations=10**9,
         checkpoint_every=10**9,
         eval_every_seconds=1e12,
+        # The whole model, whatever a few frames happen to show (a mouth not yet open).
+        keep="all",
     )
     out = Path(tempfile.mkdtemp(prefix="urhead-bench-"))
     trainer = Trainer(load_subject(subject_dir), procedural_head(0), config, out, progress=False)

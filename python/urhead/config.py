@@ -80,6 +80,11 @@ def from_arguments(
     return replace(config, **explicit)
 
 
+KEEPABLE_PARTS = ("mouth", "eyes", "offsets")
+"""The model parts a fit leaves out when its scene analysis finds the scene lacks them
+(:mod:`urhead.train.scene`), and ``--keep`` forces back."""
+
+
 @dataclass(frozen=True)
 class FitConfig:
     """Everything that shapes a fit. Defaults are the paper's (Sec. 4.1 and the supplement)
@@ -189,6 +194,12 @@ class FitConfig:
         "test-time refinement steps at the frame's full size after refine_steps (the last "
         "fraction of a pixel of alignment; both 0 = no refinement; ours)",
     )
+    keep: str = option(
+        "",
+        "parts of the model kept even where the scene analysis finds the training frames "
+        "lack them, comma-separated: mouth (interior and teeth faces and texels), eyes "
+        "(per-frame eye joints), offsets (the Gaussians' offset map E), or all (ours)",
+    )
     seed: int = option(0, "random seed")
     background: str = option(
         "auto",
@@ -227,6 +238,11 @@ class FitConfig:
         for name, ok in checks:
             if not ok:
                 raise InvalidArgumentError(f"{name} is out of range: {getattr(self, name)!r}")
+        for name in (n.strip() for n in self.keep.split(",")):
+            if name and name not in (*KEEPABLE_PARTS, "all"):
+                raise InvalidArgumentError(
+                    f"keep: {name!r} is not a part; choose from {', '.join(KEEPABLE_PARTS)} or all"
+                )
         if self.background != "auto":
             parse_background(self.background)
         rates = [

@@ -154,7 +154,8 @@ def _pixel_rays(camera: Camera) -> torch.Tensor:
 class Avatar:
     """Everything a fitted avatar is. Tensors are float32 on the CPU.
 
-    - ``maps`` (R, R, layout.channels): the UV maps (a leaf tensor; trained in place).
+    - ``maps`` (H, R, layout.channels): the UV maps (a leaf tensor; trained in place); H = R
+      but for a head whose atlas is a window of rows (:mod:`urhead.head.leave_out`).
     - ``gaussian_uv`` (N, 2), ``gaussian_face`` (N,) int64, ``gaussian_bary`` (N, 3): each
       Gaussian's UV point, the face whose UV triangle holds it and its barycentrics there.
     - ``shape`` (S,) identity coefficients; ``static_offset`` (V, 3) or None (VHAP's
@@ -189,7 +190,9 @@ class Avatar:
 
     @property
     def resolution(self) -> int:
-        return self.maps.shape[0]
+        """The atlas side: the maps' width (their height is less when the head's atlas is
+        a window of rows, :mod:`urhead.head.leave_out`)."""
+        return self.maps.shape[1]
 
     def frame(self, timestep: int) -> FlameParams:
         """The trained parameters of a training timestep (differentiable rows)."""

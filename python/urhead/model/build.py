@@ -29,11 +29,29 @@ def frame_table(frames, num_expr: int) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.tensor(frames.timesteps, dtype=torch.int64), torch.from_numpy(params)
 
 
+def subject_identity(head: HeadModel, train) -> tuple[torch.Tensor, torch.Tensor | None, int]:
+    """``(shape (S,), static_offset (V, 3) or None, num_expr)`` of the training split's
+    tracking: the identity every frame shares and how many expression columns it has."""
+    flame = train.flame_params()
+    num_expr = min(head.num_expr, flame["expr"].reshape(len(train), -1).shape[1])
+    shape = torch.from_numpy(flame["shape"][0].reshape(-1)[: head.num_shape].astype(np.float32))
+    static = None
+    if "static_offset" in flame:
+        offset = flame["static_offset"][0].reshape(-1, 3)
+        if offset.shape[0] != head.num_vertices:
+            raise InvalidArgumentError(
+                f"static_offset has {offset.shape[0]} vertices, the head {head.num_vertices} "
+                "(a VHAP export with teeth needs a head converted with teeth)"
+            )
+        static = torch.from_numpy(offset.astype(np.float32))
+    return shape, static, num_expr
+
+
 def build_avatar(
     head: HeadModel,
     train,
     *,
-    resolution: int,
+    resolution: int | tuple[int, int],
     sh_degree: int,
     gaussians: bool,
     initial_gaussians: int,
@@ -47,10 +65,12 @@ def build_avatar(
     """A fresh avatar for the training split ``train`` (a :class:`FrameSequence`).
 
     Args:
-        resolution: side of the UV maps. sh_degree: 0–3. gaussians: with the Gaussian
-        branch (O, S maps and Gaussians) or mesh only. initial_gaussians: how many, uniform
-        over the UV area. offsets: with the Gaussians' own offset map E (zero at the
-        start). shading: with the pose-driven shading maps A (zero at the start).
+        resolution: side of the UV maps, or their ``(height, width)`` (a head whose
+        atlas is a window of rows, :mod:`urhead.head.leave_out`). sh_degree: 0–3.
+        gaussians: with the Gaussian branch (O, S maps and Gaussians) or mesh only.
+        initial_gaussians: how many, uniform over the UV area. offsets: with the
+        Gaussians' own offset map E (zero at the start). shading: with the pose-driven
+        shading maps A (zero at the start).
         color_frames: how many training frames (spread over the sequence) initialise C by
         projection; 0 starts from grey.
     """
@@ -58,18 +78,7 @@ def build_avatar(
         raise InvalidArgumentError("the head model has no UV layout; an avatar needs one")
     if len(train) == 0:
         raise InvalidArgumentError("the subject has no training frames")
-    flame = train.flame_params()
-    num_expr = min(head.num_expr, flame["expr"].reshape(len(train), -1).shape[1])
-    shape = torch.from_numpy(flame["shape"][0].reshape(-1)[: head.num_shape].astype(np.float32))
-    static = None
-    if "static_offset" in flame:
-        offset = flame["static_offset"][0].reshape(-1, 3)
-        if offset.shape[0] != head.num_vertices:
-            raise InvalidArgumentError(
-                f"static_offset has {offset.shape[0]} vertices, the head {head.num_vertices} "
-                "(a VHAP export with teeth needs a head converted with teeth)"
-            )
-        static = torch.from_numpy(offset.astype(np.float32))
+    shape, static, num_expr = subject_identity(head, train)
     timesteps, params = frame_table(train, num_expr)
     layout = MapLayout(sh_degree, gaussians, offsets, shading)
     avatar = Avatar(

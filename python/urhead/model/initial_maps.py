@@ -55,12 +55,19 @@ def fill_holes(values: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
     return torch.where(observed[..., None], values, up[0].permute(1, 2, 0))
 
 
-def texel_surface(head, resolution: int):
-    """The mesh point under each texel centre: ``(tri_id (R, R) int32, bary (R, R, 2))``
-    from rasterizing the UV layout (DESIGN: UV faces list the geometry faces in order)."""
+def map_size(resolution) -> tuple[int, int]:
+    """``(height, width)`` of maps given as a side (square) or as ``(height, width)``."""
+    h, w = (resolution, resolution) if isinstance(resolution, int) else resolution
+    return int(h), int(w)
+
+
+def texel_surface(head, resolution):
+    """The mesh point under each texel centre: ``(tri_id (H, W) int32, bary (H, W, 2))``
+    from rasterizing the UV layout (DESIGN: UV faces list the geometry faces in order).
+    ``resolution`` is the side of square maps or their ``(H, W)``."""
     uv = torch.tensor(head.uv_coords)
     uv_faces = torch.tensor(head.uv_faces)
-    return rasterize_uv(uv, uv_faces, resolution, resolution)
+    return rasterize_uv(uv, uv_faces, *map_size(resolution))
 
 
 def project_colors(
@@ -72,14 +79,14 @@ def project_colors(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Averages the frames' pixel colours over the texels that see them.
 
-    Returns ``(rgb (R, R, 3), weight (R, R))``: per texel the mean colour over the frames
+    Returns ``(rgb (H, W, 3), weight (H, W))``: per texel the mean colour over the frames
     where it is visible (front-facing, not occluded, inside the mask), weighted by the
     cosine of the viewing angle and the mask.
     """
-    r = uv_raster.tri_id.shape[0]
+    h, w = uv_raster.tri_id.shape
     covered = uv_raster.tri_id >= 0
-    total = torch.zeros(r, r, 3)
-    weight = torch.zeros(r, r)
+    total = torch.zeros(h, w, 3)
+    weight = torch.zeros(h, w)
     for verts, frame, vn in zip(verts_per_frame, frames, normals_per_frame, strict=True):
         cam = frame.camera
         points = interpolate(verts, uv_raster, faces)[covered]  # (M, 3)
@@ -108,14 +115,14 @@ def project_colors(
 
 def initial_maps(
     layout: MapLayout,
-    resolution: int,
+    resolution,
     rest_verts: torch.Tensor,
     faces: torch.Tensor,
     uv_raster,
     colors: tuple[torch.Tensor, torch.Tensor] | None,
     gaussian_spacing: float,
 ) -> torch.Tensor:
-    """(R, R, channels) float32 maps.
+    """(H, W, channels) float32 maps (``resolution`` a side or ``(H, W)``).
 
     Args:
         rest_verts: (V, 3) the subject's neutral head (identity applied, zero pose).
@@ -123,15 +130,15 @@ def initial_maps(
         colors: ``(rgb, weight)`` from :func:`project_colors`, or None for mid-grey.
         gaussian_spacing: typical distance between initial Gaussians, metres (S).
     """
-    r = resolution
+    h, w = map_size(resolution)
     covered = uv_raster.tri_id >= 0
-    maps = torch.zeros(r, r, layout.channels)
+    maps = torch.zeros(h, w, layout.channels)
     rest_normals = vertex_normals(rest_verts, faces)
     normal_map = interpolate(rest_normals, uv_raster, faces)
     normal_map = fill_holes(normal_map, covered.float())
     maps[..., layout.normal] = normal_map / normal_map.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     if colors is None:
-        rgb = torch.full((r, r, 3), 0.5)
+        rgb = torch.full((h, w, 3), 0.5)
     else:
         rgb, weight = colors
         rgb = fill_holes(rgb, weight * covered)

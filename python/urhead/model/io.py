@@ -3,7 +3,8 @@ export and reenactment need no training data:
 
 ```
 avatar.json     format version, map layout and resolution, counts, background, config
-maps.npy        (R, R, channels) float32 UV maps, layout in avatar.json
+maps.npy        (H, R, channels) float32 UV maps, layout in avatar.json (H = map_rows, R
+                but for a head whose atlas is a window of rows)
 gaussians.npz   uv (N, 2), face (N,), bary (N, 3)
 frames.npz      timesteps (T,), params (T, E + 18) = expr | pose (15) | translation,
                 shape (S,), static_offset (V, 3) when the subject had one
@@ -48,6 +49,7 @@ def write_avatar_files(avatar: Avatar, folder: Path, extra: dict | None = None) 
         "offsets": layout.offsets,
         "shading": layout.shading,
         "resolution": avatar.resolution,
+        "map_rows": int(avatar.maps.shape[0]),
         "channels": layout.channels,
         "num_gaussians": avatar.num_gaussians,
         "num_expr": avatar.num_expr,
@@ -161,6 +163,7 @@ def _read_avatar(path: Path, files: dict[str, BinaryIO]) -> tuple[Avatar, dict]:
             shading=bool(meta.get("shading", False)),
         )
         r = int(meta["resolution"])
+        rows = int(meta.get("map_rows", r))
         e = int(meta["num_expr"])
         background = np.asarray(meta["background"], np.float32)
         depth_eps = float(meta["depth_eps"])
@@ -177,7 +180,7 @@ def _read_avatar(path: Path, files: dict[str, BinaryIO]) -> tuple[Avatar, dict]:
         )
     with reading(path / "maps.npy", "map array (.npy)"):
         maps = torch.from_numpy(np.load(files["maps.npy"], allow_pickle=False))
-        _expect("maps.npy", maps, (r, r, layout.channels))
+        _expect("maps.npy", maps, (rows, r, layout.channels))
         _finite("maps", maps)
     with reading(path / "gaussians.npz", "Gaussian table (.npz)"):
         with np.load(files["gaussians.npz"], allow_pickle=False) as g:

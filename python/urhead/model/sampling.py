@@ -100,9 +100,9 @@ def set_gaussians(avatar: Avatar, surface: UvSurface, uv: np.ndarray) -> None:
     """Replaces the avatar's Gaussians by those at UV points ``uv`` (N, 2) on the atlas,
     ordered by 32-texel tile of the maps and then row-major inside it, so the lookups of
     neighbouring Gaussians hit the same cache lines of a 2048² map."""
-    r = avatar.resolution
-    col = np.clip((uv[:, 0] * r).astype(np.int64), 0, r - 1)
-    row = np.clip(((1 - uv[:, 1]) * r).astype(np.int64), 0, r - 1)
+    h, w = avatar.maps.shape[:2]
+    col = np.clip((uv[:, 0] * w).astype(np.int64), 0, w - 1)
+    row = np.clip(((1 - uv[:, 1]) * h).astype(np.int64), 0, h - 1)
     uv = uv[np.lexsort((col, row, col // 32, row // 32))]
     face, bary = surface.locate(uv)
     if (face < 0).any():

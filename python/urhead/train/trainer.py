@@ -29,6 +29,7 @@ from urhead.eval import RefineSettings, evaluate_frames
 from urhead.eval.per_frame import FLAME_PARAMETERS, METRIC_REGION
 from urhead.eval.stlpips import load_stlpips
 from urhead.head import head_fingerprint
+from urhead.head.leave_out import leave_out_faces
 from urhead.losses import psnr
 from urhead.model import GaussianSampler, build_avatar, save_avatar
 from urhead.model.avatar import Avatar, Render
@@ -44,6 +45,15 @@ from urhead.train.checkpoint import (
 from urhead.train.guard import StepGuard
 from urhead.train.objective import Objective
 from urhead.train.plots import plot_psnr_vs_time
+from urhead.train.scene import (
+    PartChoice,
+    SceneMeasures,
+    analyse_scene,
+    choose_parts,
+    log_choices,
+    mouth_faces_left_out,
+    scene_report,
+)
 from urhead.train.units import check_metres
 
 log = logging.getLogger("urhead.fit")
@@ -126,25 +136,47 @@ class Trainer:
         self.background = subject_background(subject, requested)
         # Recorded in checkpoints: resuming with another subject or head is refused.
         self.inputs = {"subject": subject.fingerprint(), "head": head_fingerprint(head)}
+        # What the scene needs (start() measures it, or reads it from the checkpoint).
+        self.scene: SceneMeasures | None = None
+        self.parts: dict[str, PartChoice] = {}
 
     # --- set-up --------------------------------------------------------------------
 
     def _new_state(self) -> tuple[Avatar, dict]:
+        """A new avatar with the parts the scene needs: without the mouth's faces and
+        atlas rows for a mouth that never opens, without the offset map E where nothing
+        lies off the surface, with the eye joints fixed for eyes that never move."""
         c = self.config
+        head, map_size = self.head, c.uv_resolution
+        if not self.parts["mouth"].used:
+            dropped = mouth_faces_left_out(self.head, self.scene)
+            kept = leave_out_faces(self.head, dropped, c.uv_resolution)
+            head, map_size = kept.head, kept.map_size
+            log.info(
+                "mouth: %d faces left out; maps of atlas rows %d-%d (%d × %d)",
+                kept.faces_left_out,
+                kept.first_row,
+                kept.first_row + map_size[0] - 1,
+                *map_size,
+            )
         avatar = build_avatar(
-            self.head,
+            head,
             self.subject.train,
-            resolution=c.uv_resolution,
+            resolution=map_size,
             sh_degree=c.sh_degree,
             gaussians=self.gaussians,
             initial_gaussians=c.initial_gaussians if self.gaussians else 0,
-            offsets=self.gaussians and c.gaussian_offset,
+            offsets=self.parts["offsets"].used,
             shading=c.shading,
             background=self.background,
             depth_eps=c.depth_eps,
             color_frames=c.color_init_frames,
             rng=np.random.default_rng([c.seed, 1]),
         )
+        if not self.parts["eyes"].used:
+            eyes = _eye_columns(avatar)
+            with torch.no_grad():
+                avatar.frame_params[:, eyes] = avatar.frame_params[:, eyes].median(0).values
         return avatar, {"iteration": 0, "seconds": 0.0, "history": []}
 
     def _optimizers(self, avatar: Avatar) -> tuple[SparseAdam, SparseAdam, torch.Tensor]:
@@ -166,6 +198,8 @@ class Trainer:
             [c.lr_expression] * e + [c.lr_pose] * 15 + [c.lr_translation] * 3,
             dtype=torch.float32,
         )
+        if not self.parts["eyes"].used:
+            frame_lr[_eye_columns(avatar)] = 0.0  # fixed joints
         maps_opt = SparseAdam([avatar.maps], lr=map_lr.clone())
         frames_opt = SparseAdam([avatar.frame_params], lr=frame_lr)
         return maps_opt, frames_opt, map_lr
@@ -187,20 +221,33 @@ class Trainer:
             left_out.append("SSIM term")
         if self.gaussians and not c.gaussian_offset:
             left_out.append("Gaussian offset map E")
+        scene_parts = {
+            "mouth": "mouth interior and teeth (the mouth never opens)",
+            "eyes": "per-frame eye joints (the eyes never move)",
+            "offsets": "Gaussian offset map E (nothing off the surface)",
+        }
+        for name, what in scene_parts.items():
+            if not self.parts[name].used and (name != "offsets" or c.gaussian_offset):
+                left_out.append(what)
         if not c.shading:
             left_out.append("pose-driven shading maps A")
         if c.refine_steps + c.refine_full_steps == 0:
             left_out.append("test-time refinement of held-out FLAME rows")
         log.info(
-            "fit: %d train / %d held-out frames, maps %d² × %d channels (SH %d), %d Gaussians",
+            "fit: %d train / %d held-out frames, maps %d × %d × %d channels (SH %d), %d Gaussians",
             len(self.subject.train),
             len(self.held_out),
-            avatar.resolution,
+            *avatar.maps.shape[:2],
             avatar.layout.channels,
             c.sh_degree,
             avatar.num_gaussians,
         )
         log.info("left out: %s", "; ".join(left_out) if left_out else "nothing")
+
+    def _choose_parts(self, measures: SceneMeasures) -> None:
+        self.scene = measures
+        self.parts = choose_parts(measures, self.config)
+        log_choices(self.parts)
 
     # --- the loop ------------------------------------------------------------------
 
@@ -219,7 +266,11 @@ class Trainer:
                 )
             self._check_resumed_inputs(checkpoint, avatar, saved.get("inputs"))
             log.info("resuming from %s at iteration %d", checkpoint, saved["iteration"])
+            self._choose_parts(SceneMeasures.from_dict(saved["scene"]["measures"]))
         else:
+            self._choose_parts(
+                analyse_scene(self.subject.train, self.head, self.subject.has_normals)
+            )
             avatar, saved = self._new_state()
         self._describe(avatar)
         maps_opt, frames_opt, map_lr = self._optimizers(avatar)
@@ -229,7 +280,7 @@ class Trainer:
             frames_opt=frames_opt,
             map_lr=map_lr,
             guard=StepGuard(avatar, maps_opt, frames_opt, map_lr, start=saved["iteration"]),
-            sampler=GaussianSampler(c, self.head, avatar.num_gaussians),
+            sampler=GaussianSampler(c, avatar.head, avatar.num_gaussians),
             iteration=saved["iteration"],
             seconds=saved["seconds"],
             history=list(saved["history"]),
@@ -339,6 +390,7 @@ class Trainer:
             "seconds": state.seconds,
             "history": list(state.history),
             "config": asdict(self.config),
+            "scene": scene_report(self.scene, self.parts),
             "maps_opt": state.maps_opt.state_dict(),
             "frames_opt": state.frames_opt.state_dict(),
             **state.sampler.state(),
@@ -354,7 +406,8 @@ class Trainer:
             "camera": self.subject.train.records[0].camera.to_dict(),
         }
         # Written before the final evaluation, so a failure there never loses the fit.
-        save_avatar(avatar, self.out / "avatar", extra={"config": asdict(c), **recorded})
+        extra = {"config": asdict(c), "scene": scene_report(self.scene, self.parts), **recorded}
+        save_avatar(avatar, self.out / "avatar", extra=extra)
         held_out = list(self.held_out)
         refine = RefineSettings(steps=c.refine_steps, full_steps=c.refine_full_steps)
         tick = time.perf_counter()
@@ -416,6 +469,12 @@ class Trainer:
         write_bytes_atomically(self.out / "metrics.json", json.dumps(metrics, indent=2).encode())
         remove_checkpoints(self.out)  # the avatar supersedes them (GBs at 2048²)
         return FitResult(avatar, metrics, self.out)
+
+
+def _eye_columns(avatar: Avatar) -> slice:
+    """The frame-parameter columns of the two eye joints' axis-angles."""
+    start = avatar.num_expr + 9
+    return slice(start, start + 6)
 
 
 def _title(c: FitConfig, avatar: Avatar) -> str:

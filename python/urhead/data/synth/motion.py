@@ -10,6 +10,11 @@ import numpy as np
 
 FPS = 25.0
 
+MOUTHS = ("talking", "closed")
+"""The mouth of a performance: speaking, or closed throughout (a listener)."""
+GAZES = ("moving", "fixed")
+"""The eyes of a performance: saccades between fixations, or still in their rest pose."""
+
 
 @dataclass(frozen=True)
 class Performance:
@@ -58,10 +63,20 @@ def performance(
     *,
     max_yaw_deg: float,
     expression_scale: float,
+    mouth: str = "talking",
+    gaze: str = "moving",
 ) -> Performance:
     """A talking sequence: speech in phrases (jaw at syllable rate, lip shapes), slow
     smiles and brow raises, blinks every 2–5 s, gaze saccades, head turns sweeping the
-    full ±``max_yaw_deg`` range with pitch and roll."""
+    full ±``max_yaw_deg`` range with pitch and roll.
+
+    ``mouth="closed"``: no speech, the jaw and the lip shapes that part the lips at rest
+    (a listener). ``gaze="fixed"``: the eyes keep their rest pose. The random draws are
+    the same either way, so the rest of the performance does not change."""
+    if mouth not in MOUTHS:
+        raise ValueError(f"mouth must be one of {MOUTHS}, got {mouth!r}")
+    if gaze not in GAZES:
+        raise ValueError(f"gaze must be one of {GAZES}, got {gaze!r}")
     n = num_frames
     s = expression_scale
 
@@ -80,6 +95,8 @@ def performance(
     )
     lip_a = speaking * np.clip(_smooth_noise(rng, n, 3), 0, None) * 0.6 * s
     lip_b = speaking * np.clip(_smooth_noise(rng, n, 3), 0, None) * 0.6 * s
+    if mouth == "closed":
+        speaking, jaw, lip_a, lip_b = (np.zeros(n),) * 4
 
     smile = np.clip(0.25 + 0.5 * _smooth_noise(rng, n, 40), 0, 1) * s
     brow = (
@@ -140,7 +157,10 @@ def performance(
     gaze_yaw = np.convolve(fix_yaw, quick, mode="full")[:n] - 0.3 * yaw
     gaze_pitch = np.convolve(fix_pitch, quick, mode="full")[:n]
     eye = np.stack([gaze_pitch, gaze_yaw, np.zeros(n)], 1)
-    jaw_pose = np.stack([jaw, 0.02 * _smooth_noise(rng, n, 15), np.zeros(n)], 1)
+    if gaze == "fixed":
+        eye = np.zeros_like(eye)
+    jaw_side = 0.02 * _smooth_noise(rng, n, 15) * (mouth == "talking")
+    jaw_pose = np.stack([jaw, jaw_side, np.zeros(n)], 1)
     pose = np.concatenate([glob, neck, jaw_pose, eye, eye], 1)
     transl = np.stack(
         [

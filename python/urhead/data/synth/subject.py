@@ -33,7 +33,7 @@ import torch
 from urhead.camera import Camera
 from urhead.data.background import parse_background
 from urhead.data.manifest import MANIFEST, manifest_problem, write_manifest
-from urhead.data.synth.motion import FPS, MOTIONS, performance, tracking_noise
+from urhead.data.synth.motion import FPS, GAZES, MOTIONS, MOUTHS, performance, tracking_noise
 from urhead.data.synth.raytrace import Light, TriangleBvh, raytrace
 from urhead.data.synth.scene import HAIR_MODES, MATERIALS, Strands, SubjectLook, build_look
 from urhead.data.writer import SubjectWriter
@@ -145,6 +145,10 @@ class SynthConfig:
     length_unit: float = 1.0
     """Metres per length unit of the written files (head model, cameras, FLAME
     translations): 1e-3 writes millimetres, 1e3 kilometres. The images do not change."""
+    mouth: str = "talking"
+    """``talking``, or ``closed`` throughout (no jaw, no parted lips)."""
+    gaze: str = "moving"
+    """``moving`` (saccades), or ``fixed``: the eyes keep their rest pose."""
 
     def __post_init__(self):
         if self.difficulty not in DIFFICULTIES:
@@ -163,6 +167,10 @@ class SynthConfig:
             raise ValueError(f"tracking_noise must be >= 0, got {self.tracking_noise}")
         if self.motion not in MOTIONS:
             raise ValueError(f"motion must be one of {list(MOTIONS)}, got {self.motion!r}")
+        if self.mouth not in MOUTHS:
+            raise ValueError(f"mouth must be one of {list(MOUTHS)}, got {self.mouth!r}")
+        if self.gaze not in GAZES:
+            raise ValueError(f"gaze must be one of {list(GAZES)}, got {self.gaze!r}")
         if not 0 < self.length_unit < float("inf"):
             raise ValueError(f"length_unit must be > 0, got {self.length_unit}")
 
@@ -177,7 +185,13 @@ class SynthConfig:
         """The same for configs that make the same subject (conditions resolved); white,
         talking, metric subjects keep the keys they had before those were options."""
         settings = asdict(self.resolved())
-        for name, default in (("background", BACKGROUND), ("motion", "talking")):
+        defaults = (
+            ("background", BACKGROUND),
+            ("motion", "talking"),
+            ("mouth", "talking"),
+            ("gaze", "moving"),
+        )
+        for name, default in defaults:
             if settings[name] == default:
                 del settings[name]
         if self.length_unit == 1.0:
@@ -252,6 +266,8 @@ def synthesize(
         head.num_expr,
         max_yaw_deg=preset["max_yaw_deg"],
         expression_scale=preset["expression_scale"],
+        mouth=config.mouth,
+        gaze=config.gaze,
     )
     if MOTIONS[config.motion] is not None:
         perf = MOTIONS[config.motion](perf)
@@ -637,6 +653,18 @@ def add_parser(subparsers) -> None:
         "off_screen: the head half and wholly out of view (default %(default)s)",
     )
     p.add_argument(
+        "--mouth",
+        choices=list(MOUTHS),
+        default=defaults.mouth,
+        help="talking; closed: no speech, the lips closed throughout (default %(default)s)",
+    )
+    p.add_argument(
+        "--gaze",
+        choices=list(GAZES),
+        default=defaults.gaze,
+        help="moving: saccades; fixed: the eyes still in their rest pose (default %(default)s)",
+    )
+    p.add_argument(
         "--length-unit",
         type=float,
         default=defaults.length_unit,
@@ -685,6 +713,8 @@ def config_from_args(args: argparse.Namespace) -> SynthConfig:
         background=parse_background(args.background),
         motion=args.motion,
         length_unit=args.length_unit,
+        mouth=args.mouth,
+        gaze=args.gaze,
     ).resolved()
 
 
