@@ -10,6 +10,7 @@ from collections.abc import Sequence
 import torch
 import torch.nn.functional as F
 
+from urhead import hugepages
 from urhead.model.layout import MapLayout
 from urhead.ops import interpolate, rasterize, rasterize_uv
 from urhead.sh import rgb_to_sh_dc
@@ -133,7 +134,7 @@ def initial_maps(
     """
     r = resolution
     covered = uv_raster.tri_id >= 0
-    maps = torch.zeros(r, r, layout.channels)
+    maps = hugepages.zeros((r, r, layout.channels))
     rest_normals = vertex_normals(rest_verts, faces)
     normal_map = interpolate(rest_normals, uv_raster, faces)
     normal_map = fill_holes(normal_map, covered.float())

@@ -7,6 +7,7 @@ mod arrays;
 mod camera;
 mod errors;
 mod lbs;
+mod memory;
 mod pool;
 mod raster;
 mod raytrace;
@@ -34,6 +35,8 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(lbs::lbs_backward_f32, m)?)?;
     m.add_function(wrap_pyfunction!(lbs::lbs_forward_f64, m)?)?;
     m.add_function(wrap_pyfunction!(lbs::lbs_backward_f64, m)?)?;
+    m.add_function(wrap_pyfunction!(memory::huge_page_zeros_f32, m)?)?;
+    m.add_function(wrap_pyfunction!(memory::huge_page_zeros_i32, m)?)?;
     raster::register(m)?;
     m.add_class::<splat::SplatState>()?;
     m.add_function(wrap_pyfunction!(splat::splat_project_forward_f32, m)?)?;

@@ -1,0 +1,39 @@
+"""Large long-lived tensors on transparent huge pages.
+
+The UV maps (2048² × 56 float32 = 940 MB at the paper's settings) and the sparse Adam
+moments beside them are read and written at ~350k random texels an iteration. On 4 KiB
+pages nearly every such access misses the TLB; on 2 MiB pages it does not (texture lookups
+and a whole training step both get markedly faster, docs/benchmarks.md). Torch's allocator
+gives 4 KiB pages unless the system enables THP for everything, so these tensors are
+allocated by urhead's native module instead: fresh zero pages advised with
+``madvise(MADV_HUGEPAGE)`` before anything touches them. Only advice: on other systems, or
+where THP is off (``/sys/kernel/mm/transparent_hugepage/enabled`` says ``never``), they are
+ordinary memory, and the tensors behave as any CPU tensor does.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from urhead import _core
+from urhead.errors import DTypeError
+
+_ALLOCATORS = {torch.float32: _core.huge_page_zeros_f32, torch.int32: _core.huge_page_zeros_i32}
+
+
+def zeros(shape: tuple[int, ...] | torch.Size, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """A contiguous tensor of zeros of ``shape`` (float32 or int32) on huge pages."""
+    if dtype not in _ALLOCATORS:
+        raise DTypeError(f"huge-page tensors are float32 or int32, got {dtype}")
+    flat = torch.from_numpy(_ALLOCATORS[dtype](math.prod(shape)))
+    return flat.reshape(shape)
+
+
+def copy(tensor: torch.Tensor) -> torch.Tensor:
+    """A contiguous copy of ``tensor`` (float32 or int32, CPU) on huge pages; it never
+    shares memory or autograd history with ``tensor``."""
+    out = zeros(tensor.shape, tensor.dtype)
+    out.copy_(tensor.detach())
+    return out
