@@ -62,15 +62,12 @@ def test_copy_is_equal_and_independent():
     sys.platform != "linux" or thp_mode() not in ("always", "madvise"),
     reason="transparent huge pages need Linux with THP in 'always' or 'madvise' mode",
 )
-def test_a_large_table_is_backed_by_huge_pages_where_torch_gives_small_ones():
-    shape = (512, 512, 16)  # 16 MiB: several whole 2 MiB pages
-    ours = hugepages.zeros(shape)
+def test_a_large_table_is_backed_by_huge_pages():
+    # (Whether a plain torch tensor gets 4 KiB pages depends on what the allocator reuses:
+    # memory advised earlier in the process keeps its advice, so that is not asserted.)
+    ours = hugepages.zeros((512, 512, 16))  # 16 MiB: several whole 2 MiB pages
     ours.fill_(1.0)  # first touch: the kernel backs the advised range
     assert huge_page_kib(ours) >= 8 << 10  # at least half the table on 2 MiB pages
-    if thp_mode() == "madvise":
-        plain = torch.zeros(shape)
-        plain.fill_(1.0)
-        assert huge_page_kib(plain) == 0
 
 
 def test_sparse_adam_state_and_restored_state_are_huge_page_tables():
