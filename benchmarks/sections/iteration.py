@@ -16,13 +16,14 @@ journal grows every step (page faults a steady run pays only once).
 
 from __future__ import annotations
 
+import statistics
 from pathlib import Path
 
 import torch
 
 from sections.common import ms, save, table
 from sections.scene import paper_scene
-from timing import median_wall_cpu_ms
+from timing import median_wall_cpu_ms, wall_cpu_samples
 from urhead import hugepages
 from urhead.losses import l1, ssim
 from urhead.ops import TextureGather, texture
@@ -144,21 +145,36 @@ def _move_tables(state, allocate) -> None:
         moments[name] = allocate(moments[name])
 
 
-def page_size_gain(trainer, state, repeats: int) -> dict:
-    """What huge pages pay, same process: ``{"huge"|"torch": {"lookup", "step"}}`` timings
-    with the maps and moments as the trainer allocates them (huge pages,
+def page_size_gain(trainer, state, repeats: int, rounds: int = 3) -> dict:
+    """What huge pages pay, same process: ``{"huge"|"torch": {"lookup", "step"}}`` median
+    timings with the maps and moments as the trainer allocates them (huge pages,
     :mod:`urhead.hugepages`) and moved into copies from torch's allocator (4 KiB pages
-    unless THP is on for everything). ``lookup``: bilinear lookups of 200k random UV points
+    unless THP is on for everything), alternating ``rounds`` times so a change in the
+    machine's load hits both alike. ``lookup``: bilinear lookups of 200k random UV points
     in the maps; ``step``: :meth:`Trainer.step`. Ends with the tables on huge pages."""
     uv = torch.rand(200_000, 2, generator=torch.Generator().manual_seed(0))
-    out = {}
-    for kind, allocate in (("torch", lambda t: t.detach().clone()), ("huge", hugepages.copy)):
-        _move_tables(state, allocate)
-        out[kind] = {
-            "lookup": median_wall_cpu_ms(lambda: texture(state.avatar.maps.detach(), uv), repeats),
-            "step": median_wall_cpu_ms(lambda: trainer.step(state), repeats),
+    allocators = {"torch": lambda t: t.detach().clone(), "huge": hugepages.copy}
+    calls = {
+        "lookup": lambda: texture(state.avatar.maps.detach(), uv),
+        "step": lambda: trainer.step(state),
+    }
+    samples = {kind: {call: ([], []) for call in calls} for kind in allocators}
+    per_round = max(repeats // rounds, 2)
+    for _ in range(rounds):
+        for kind, allocate in allocators.items():
+            _move_tables(state, allocate)
+            for call, fn in calls.items():
+                fn()  # the first call after a move pays its page faults
+                wall, cpu = wall_cpu_samples(fn, per_round)
+                samples[kind][call][0].extend(wall)
+                samples[kind][call][1].extend(cpu)
+    return {
+        kind: {
+            call: {"wall_ms": statistics.median(w), "cpu_ms": statistics.median(c)}
+            for call, (w, c) in by_call.items()
         }
-    return out
+        for kind, by_call in samples.items()
+    }
 
 
 def measure(num_gaussians: int, repeats: int) -> dict:
@@ -250,7 +266,6 @@ def _pages_note(pages: dict) -> str:
     return (
         "**What huge pages pay** (same run, the same tables moved between torch's allocator "
         "and `urhead.hugepages`): bilinear lookups of 200k random UV points in the maps "
-        f"{compare('lookup')}; the whole iteration {compare('step')} — its lookups are "
-        "mostly coherent (pixels in scan order, rows sorted), so random-access TLB misses "
-        "are a small part of it."
+        f"{compare('lookup')}; the whole iteration {compare('step')}. Medians over "
+        "alternating rounds."
     )
