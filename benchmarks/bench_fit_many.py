@@ -24,7 +24,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from urhead.data.synthetic import SynthConfig, synthesize
+from urhead.data.synth.subject import SynthConfig, synthesize
 
 FIT_OPTIONS = [
     *("--iterations", "100", "--uv-resolution", "64", "--error-grid", "32"),

@@ -137,7 +137,7 @@ def bench(n: int, reps: int, torch_max: int):
         m2d, conics, depths, radii, colors = ref.project_gaussians(
             means, quats, scales, opac, cam, sh, 3
         )
-    _, _, binning, pairs = _core.splat_rasterize_forward_f32(
+    _, _, binning, pairs = _core.splat_rasterize_forward(
         m2d.numpy(),
         conics.numpy(),
         colors.numpy(),

@@ -26,10 +26,12 @@ import numpy as np
 import torch
 from tqdm.contrib.logging import logging_redirect_tqdm
 
+from urhead._atomic import write_bytes_atomically, write_file_atomically
 from urhead._threads import configure_threads
 from urhead.config import FIT_PRESETS, FitConfig
 from urhead.data import load_subject
-from urhead.data.synthetic import SynthConfig, synthesize
+from urhead.data.images import to_uint8, write_png
+from urhead.data.synth.subject import SynthConfig, synthesize
 from urhead.eval import exact_flame_scores
 from urhead.eval.metrics import frame_params
 from urhead.head import procedural_head
@@ -68,9 +70,7 @@ def main() -> None:
         oracle = exact_flame_scores(result.avatar, held_out(subject), truth)
         metrics["psnr_true_flame"] = oracle.psnr
         metrics["psnr_true_flame_full"] = oracle.psnr_full
-    tmp = args.out / "metrics.json.tmp"
-    tmp.write_text(json.dumps(metrics, indent=2))
-    tmp.replace(args.out / "metrics.json")
+    write_bytes_atomically(args.out / "metrics.json", json.dumps(metrics, indent=2).encode())
     print(json.dumps(metrics, indent=2))
     print(f"wrote {args.out}/avatar, metrics.json, psnr_vs_time.png, test_frames.png")
 
@@ -84,23 +84,22 @@ def write_test_strip(avatar, subject, path: Path, config: FitConfig, count: int 
     (refined FLAME) | mesh branch (tracked) | error ×4 (refined)."""
     import cv2
 
-    from urhead.eval import RefineSettings, refine_params
+    from urhead.eval import RefineSettings, refine_params_of
 
     frames = held_out(subject)
     picks = np.linspace(0, len(frames) - 1, count).round().astype(int)
+    shown = [frames[int(i)] for i in picks]
     settings = RefineSettings(steps=config.refine_steps, full_steps=config.refine_full_steps)
     rows = []
-    for i in picks:
-        frame = frames[int(i)]
+    for frame, refined in zip(shown, refine_params_of(avatar, shown, settings), strict=True):
         tracked = frame_params(avatar, frame)
-        refined = refine_params(avatar, frame, tracked, settings)
         with torch.no_grad():
             out = avatar.render(tracked, frame.camera)
             better = avatar.render(refined, frame.camera).image.clamp(0, 1)
         error = ((better - frame.image).abs() * 4).clamp(0, 1)
         tiles = [frame.image, out.image.clamp(0, 1), better, out.mesh.image.clamp(0, 1), error]
         rows.append(torch.cat(tiles, 1))
-    image = np.ascontiguousarray((torch.cat(rows, 0).numpy() * 255).round().astype(np.uint8))
+    image = to_uint8(torch.cat(rows, 0).numpy())
     tile = frames[0].camera.width
     labels = ["ground truth", "avatar, tracked FLAME", "avatar, refined FLAME", "mesh branch"]
     labels.append("error x4 (refined)")
@@ -109,9 +108,7 @@ def write_test_strip(avatar, subject, path: Path, config: FitConfig, count: int 
         org = (k * tile + int(8 * scale), int(24 * scale))
         cv2.putText(image, label, org, cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale, (0, 0, 0), 3)
         cv2.putText(image, label, org, cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale, (255, 255, 255), 1)
-    tmp = path.with_name(path.name + ".tmp.png")
-    cv2.imwrite(str(tmp), image[..., ::-1])
-    tmp.replace(path)
+    write_file_atomically(path, lambda tmp: write_png(tmp, image))
 
 
 if __name__ == "__main__":

@@ -17,6 +17,7 @@ import torch
 from PIL import Image, ImageDraw
 
 from urhead.head import REGION_NAMES, procedural_head
+from urhead.head.mesh import vertex_normals_numpy
 
 SKIN = np.array([0.86, 0.66, 0.55])
 COLOURS = {
@@ -59,15 +60,6 @@ def _soften(colours, faces, movable, rounds=3):
     return colours
 
 
-def vertex_normals(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    tri = verts[faces]
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    out = np.zeros_like(verts)
-    for k in range(3):
-        np.add.at(out, faces[:, k], n)
-    return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)
-
-
 def look_at(eye, target, up=(0.0, 1.0, 0.0)) -> np.ndarray:
     """World→camera (OpenCV axes: x right, y down, z forward)."""
     eye, target, up = (np.asarray(a, np.float64) for a in (eye, target, up))
@@ -84,7 +76,7 @@ def look_at(eye, target, up=(0.0, 1.0, 0.0)) -> np.ndarray:
 
 def render(verts, faces, colours, view, focal, size, background=1.0) -> np.ndarray:
     """(size, size, 3) float image of the mesh seen by a pinhole camera."""
-    normals = vertex_normals(verts, faces)
+    normals = vertex_normals_numpy(verts, faces)
     cam = verts @ view[:3, :3].T + view[:3, 3]
     n_cam = normals @ view[:3, :3].T
     px = focal * cam[:, :2] / cam[:, 2:3] + size / 2

@@ -22,7 +22,7 @@ from urhead.data.background import (
     parse_background,
     subject_background,
 )
-from urhead.data.synthetic import GENERATOR_VERSION, SynthConfig
+from urhead.data.synth.subject import GENERATOR_VERSION, SynthConfig
 from urhead.errors import InvalidArgumentError
 from vhap_fixtures import write_vhap_export
 

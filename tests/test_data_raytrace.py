@@ -1,4 +1,4 @@
-"""urhead.raytrace against a brute-force float64 reference on tiny scenes, its camera
+"""urhead.data.synth.raytrace against a brute-force float64 reference on tiny scenes, its camera
 convention, shading properties and determinism."""
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ import pytest
 import torch
 
 from urhead import Camera
+from urhead.data.synth.raytrace import Light, Material, TriangleBvh, decal, raytrace
 from urhead.errors import IndexRangeError, InvalidArgumentError, NonFiniteError
-from urhead.raytrace import Light, Material, TriangleBvh, decal, raytrace
 
 
 def off_centre_camera(w=48, h=40) -> Camera:
@@ -239,7 +239,7 @@ def test_same_bits_for_1_2_and_4_threads():
     code = (
         "import numpy as np, sys\n"
         "from test_data_raytrace import triangle_soup, off_centre_camera\n"
-        "from urhead.raytrace import raytrace, Material\n"
+        "from urhead.data.synth.raytrace import raytrace, Material\n"
         "v, f, n = triangle_soup(np.random.default_rng(4))\n"
         "m = Material(specular=0.5, pore_strength=0.5, pore_size=0.01, mottle_strength=0.3)\n"
         "o = raytrace(v, f, off_centre_camera(), normals=n, materials=[m], samples_per_side=2,"

@@ -9,9 +9,10 @@ import pytest
 import torch
 
 from urhead import Camera
+from urhead.data.synth.raytrace import Light, Material, raytrace
 from urhead.head import procedural_head
+from urhead.head.mesh import vertex_normals_numpy
 from urhead.ops import interpolate, rasterize
-from urhead.raytrace import Light, Material, raytrace, vertex_normals
 
 
 @pytest.fixture(scope="module")
@@ -59,7 +60,7 @@ def test_shaded_colour_agrees(head_scene):
     verts, faces, colors, camera = head_scene
     light = Light(direction=(0.3, 0.5, 0.8), angular_radius=0.0)
     matte = [Material(specular=0.0, wrap=0.0)]
-    normals = vertex_normals(verts, faces)
+    normals = vertex_normals_numpy(verts, faces)
     traced = raytrace(
         verts,
         faces,

@@ -13,7 +13,8 @@ import torch
 
 from urhead.cli import build_parser
 from urhead.data import load_subject
-from urhead.data.synthetic import (
+from urhead.data.synth.raytrace import raytrace
+from urhead.data.synth.subject import (
     CONDITIONS,
     DIFFICULTIES,
     LIGHTS,
@@ -23,7 +24,6 @@ from urhead.data.synthetic import (
     synthesize,
 )
 from urhead.head import load_head, procedural_head
-from urhead.raytrace import raytrace
 
 TINY = SynthConfig(
     frames=2,

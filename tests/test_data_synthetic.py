@@ -17,7 +17,7 @@ from PIL import Image
 from urhead.cli import main
 from urhead.data import load_subject
 from urhead.data.reader import Subject
-from urhead.data.synthetic import SynthConfig, contact_sheet, synthesize
+from urhead.data.synth.subject import SynthConfig, contact_sheet, synthesize
 from urhead.head import load_head
 
 TINY = SynthConfig(
@@ -99,7 +99,7 @@ def test_same_bytes_for_any_thread_count(tiny_subject, tmp_path):
     with a BVH refit between rebuilds: none of it may change a byte."""
     code = (
         "import sys\n"
-        "from urhead.data.synthetic import SynthConfig, synthesize\n"
+        "from urhead.data.synth.subject import SynthConfig, synthesize\n"
         f"synthesize(sys.argv[1], SynthConfig(**{TINY.__dict__!r}), progress=False)\n"
     )
     for threads in ("1", "3"):

@@ -21,13 +21,13 @@ import torch
 from urhead.cli import main
 from urhead.config import FitConfig
 from urhead.data import load_subject
-from urhead.data.synthetic import SynthConfig, synthesize
+from urhead.data.synth.subject import SynthConfig, synthesize
 from urhead.eval.metrics import frame_params
+from urhead.eval.stlpips import load_stlpips
 from urhead.head import procedural_head
 from urhead.model import load_avatar
 from urhead.train.checkpoint import find_checkpoint, save_checkpoint
 from urhead.train.trainer import Trainer, eval_subset, frame_order, uv_lr_factor
-from urhead.use.stlpips import load_stlpips
 
 TINY = SynthConfig(
     frames=10, resolution=64, seed=5, difficulty="easy", samples_per_side=1, edge_samples_per_side=1

@@ -23,7 +23,7 @@ import torch
 from test_fit import TINY  # the tiny synthetic subject of the fit's own tests
 from urhead.cli import main
 from urhead.config import FitConfig
-from urhead.data.synthetic import synthesize
+from urhead.data.synth.subject import synthesize
 from urhead.model import load_avatar
 from urhead.train.checkpoint import find_checkpoint
 from urhead.train.summary import Summary

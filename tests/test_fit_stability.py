@@ -16,7 +16,7 @@ from test_fit import SMALL_FIT, TINY
 from urhead.config import FitConfig
 from urhead.data import load_subject
 from urhead.data.reader import FrameSequence
-from urhead.data.synthetic import synthesize
+from urhead.data.synth.subject import synthesize
 from urhead.errors import UnitsError
 from urhead.head import load_head, procedural_head
 from urhead.model import load_avatar

@@ -11,17 +11,17 @@ import subprocess
 import numpy as np
 import pytest
 
-from urhead._threads import num_threads, usable_cpus
-from urhead.config import FitConfig
-from urhead.data import DatasetError, load_subject
-from urhead.data.images import read_png, write_png
-from urhead.errors import InvalidArgumentError, SizeLimitError
-from urhead.files import (
+from urhead._atomic import (
     folder_lock,
     remove_stale_temporaries,
     write_bytes_atomically,
     write_directory_atomically,
 )
+from urhead._threads import num_threads, usable_cpus
+from urhead.config import FitConfig
+from urhead.data import DatasetError, load_subject
+from urhead.data.images import read_png, write_png
+from urhead.errors import InvalidArgumentError, SizeLimitError
 from urhead.head import procedural_head, save_head
 from urhead.head.pickle_compat import load_flame_pickle
 from urhead.model import load_avatar

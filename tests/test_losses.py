@@ -5,7 +5,10 @@ import math
 import torch
 import torch.nn.functional as F
 
-from urhead.losses import l1, laplacian_loss, psnr, ssim, ssim_map, uniform_laplacian
+from urhead.head.mesh import uniform_laplacian
+from urhead.losses import l1, psnr, ssim
+from urhead.ops._reference import ssim_map
+from urhead.train.objective import laplacian_loss
 
 
 def reference_ssim_map(x, y):

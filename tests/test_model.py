@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ import torch
 
 from urhead.camera import Camera
 from urhead.head import procedural_head
+from urhead.head.mesh import vertex_normals
 from urhead.model import (
     Avatar,
     ErrorAccumulator,
@@ -21,10 +23,10 @@ from urhead.model import (
     save_avatar,
     set_gaussians,
 )
-from urhead.model.init import fill_holes, initial_maps, texel_surface, vertex_normals
+from urhead.model.initial_maps import fill_holes, initial_maps, texel_surface
 from urhead.model.io import write_directory_atomically
+from urhead.model.sampling import nearest_pixel
 from urhead.ops import TextureGather
-from urhead.train.loss import nearest_pixel
 
 
 @pytest.fixture(scope="module")
@@ -50,9 +52,7 @@ def make_avatar(head, gaussians=True, sh_degree=1, resolution=32, count=200) -> 
     )
     t = avatar.tables()
     raster = texel_surface(head, resolution)
-    avatar.maps = initial_maps(
-        layout, resolution, t["lbs"]["v_template"], t["faces"], raster, None, 0.004
-    )
+    avatar.maps = initial_maps(layout, resolution, t.lbs.v_template, t.faces, raster, None, 0.004)
     if gaussians:
         surface = UvSurface(head.uv_coords, head.uv_faces)
         set_gaussians(avatar, surface, surface.uniform(count, np.random.default_rng(0)))
@@ -314,7 +314,7 @@ def test_silhouette_loss_is_the_coverage_error_and_moves_opacity_and_the_pose(he
     reaches the opacity map and the frame's pose (through the antialiased silhouette)."""
     from types import SimpleNamespace
 
-    from urhead.train.loss import coverage, silhouette_loss
+    from urhead.train.objective import coverage, silhouette_loss
 
     avatar = make_avatar(head)
     avatar.maps.requires_grad_(True)
@@ -335,3 +335,64 @@ def test_silhouette_loss_is_the_coverage_error_and_moves_opacity_and_the_pose(he
     opacity = gather.gradient().coalesce().values()[:, avatar.layout.opacity]
     assert opacity.abs().sum() > 0
     assert params.pose.grad is not None and params.pose.grad.abs().sum() > 0
+
+
+def test_pixel_rays_are_kept_for_the_last_camera_only():
+    from urhead.camera import Camera
+    from urhead.model.avatar import PixelRays
+
+    k = torch.tensor([[10.0, 0, 4], [0, 10.0, 3], [0, 0, 1]])
+    camera = Camera(k, torch.eye(4), 8, 6)
+    rays = PixelRays()
+    first = rays(camera)
+    assert first.shape == (48, 3)
+    assert torch.allclose(first.norm(dim=-1), torch.ones(48))
+    # Pixel (3, 2) has its centre half a pixel off the principal point (4, 3) each way.
+    expected = torch.tensor([-0.05, -0.05, 1.0])
+    assert torch.allclose(first[2 * 8 + 3], expected / expected.norm())
+    assert rays(camera) is first
+    smaller = rays(camera.resized(4, 3))
+    assert smaller.shape == (12, 3)
+    assert rays(camera) is not first and torch.equal(rays(camera), first)
+
+
+def test_sampler_resamples_on_its_schedule_and_round_trips_its_state(head):
+    from dataclasses import replace as with_options
+
+    from urhead.config import FitConfig
+    from urhead.model import GaussianSampler
+
+    config = with_options(
+        FitConfig(),
+        iterations=20,
+        uv_resolution=32,
+        error_grid=8,
+        sample_every=10,
+        sample_cap=40,
+        initial_gaussians=200,
+        max_gaussians=230,
+        prune_opacity=0.0,
+    )
+    avatar = make_avatar(head, count=200)
+    sampler = GaussianSampler(config, head, avatar.num_gaussians)
+    with torch.no_grad():
+        render = avatar.render(avatar.frame(3), camera())
+    frame = SimpleNamespace(image=torch.rand(48, 48, 3), mask=torch.ones(48, 48), camera=camera())
+    sampler.observe(render, frame)
+    assert sampler.accumulator.count.sum() > 0
+    assert sampler.max_radius.shape == (200,) and sampler.max_radius.max() > 0
+
+    restored = GaussianSampler(config, head, avatar.num_gaussians)
+    restored.load_state(sampler.state())
+    assert torch.equal(restored.accumulator.error, sampler.accumulator.error)
+    assert torch.equal(restored.max_radius, sampler.max_radius)
+
+    uv = avatar.gaussian_uv.clone()
+    sampler.step_end(avatar, frame, 9)  # off the schedule: nothing moves
+    assert torch.equal(avatar.gaussian_uv, uv)
+    sampler.step_end(avatar, frame, 10)  # adds new ones where the error is, within budget
+    grown = avatar.num_gaussians
+    assert 200 < grown <= 230
+    assert sampler.accumulator.count.sum() == 0 and sampler.max_radius.shape == (grown,)
+    sampler.step_end(avatar, frame, 20)  # never after the last iteration
+    assert avatar.num_gaussians == grown

@@ -1,4 +1,4 @@
-"""urhead.ops.ssim_loss / l1_loss against the plain-torch references (value and gradient),
+"""urhead.ops.masked_ssim / masked_l1 against the plain-torch references (value and gradient),
 finite differences, edge cases, input errors and thread-count determinism."""
 
 from __future__ import annotations
@@ -9,9 +9,9 @@ import torch
 from urhead.errors import DTypeError, InvalidArgumentError, NonFiniteError, ShapeError
 from urhead.losses import l1, ssim
 from urhead.ops import _reference as ref
-from urhead.ops import l1_loss, ssim_loss
+from urhead.ops import masked_l1, masked_ssim
 
-OPS = {"ssim": (ssim_loss, ref.ssim_loss), "l1": (l1_loss, ref.l1_loss)}
+OPS = {"ssim": (masked_ssim, ref.masked_ssim), "l1": (masked_l1, ref.masked_l1)}
 
 
 def images(h, w, c=3, dtype=torch.float64, seed=0, noise=0.15):
@@ -80,13 +80,13 @@ def test_float32_matches_reference(op):
 def test_ssim_gradient_matches_finite_differences(mask_kind):
     image, target = images(23, 31, seed=5)
     mask = make_mask(mask_kind, 23, 31)
-    _, grad = value_and_grad(ssim_loss, image, target, mask)
+    _, grad = value_and_grad(masked_ssim, image, target, mask)
     g = torch.Generator().manual_seed(7)
     eps = 1e-6
     for _ in range(4):
         direction = torch.randn(image.shape, generator=g, dtype=torch.float64)
-        plus = ssim_loss(image + eps * direction, target, mask).item()
-        minus = ssim_loss(image - eps * direction, target, mask).item()
+        plus = masked_ssim(image + eps * direction, target, mask).item()
+        minus = masked_ssim(image - eps * direction, target, mask).item()
         fd = (plus - minus) / (2 * eps)
         analytic = (grad * direction).sum().item()
         assert abs(fd - analytic) < 2e-8 * max(abs(analytic), 1e-3)
@@ -94,10 +94,10 @@ def test_ssim_gradient_matches_finite_differences(mask_kind):
 
 def test_identical_images_score_one_with_zero_gradient():
     _, target = images(40, 41)
-    value, grad = value_and_grad(ssim_loss, target, target, make_mask("soft", 40, 41))
+    value, grad = value_and_grad(masked_ssim, target, target, make_mask("soft", 40, 41))
     assert abs(value.item() - 1) < 1e-14
     assert grad.abs().max().item() < 1e-13
-    value, grad = value_and_grad(l1_loss, target, target, None)
+    value, grad = value_and_grad(masked_l1, target, target, None)
     assert value.item() == 0 and grad.abs().max().item() == 0
 
 
@@ -109,9 +109,9 @@ def test_constant_images_follow_the_luminance_term():
     inner = torch.zeros(30, 30, dtype=torch.float64)
     inner[5:-5, 5:-5] = 1
     expected = (2 * a * b + 1e-4) / (a * a + b * b + 1e-4)
-    assert abs(ssim_loss(image, target, inner).item() - expected) < 1e-12
-    value, grad = value_and_grad(ssim_loss, image, target, None)
-    ref_value, ref_grad = value_and_grad(ref.ssim_loss, image, target, None)
+    assert abs(masked_ssim(image, target, inner).item() - expected) < 1e-12
+    value, grad = value_and_grad(masked_ssim, image, target, None)
+    ref_value, ref_grad = value_and_grad(ref.masked_ssim, image, target, None)
     assert abs(value.item() - ref_value.item()) < 1e-13
     assert (grad - ref_grad).abs().max().item() < 1e-13
 
@@ -123,7 +123,7 @@ def test_losses_module_uses_the_kernel_and_keeps_plain_torch_semantics():
     (ssim(x, target, mask) + l1(x, target, mask)).backward()
     x_ref = image.double().clone().requires_grad_(True)
     (
-        ref.ssim_loss(x_ref, target.double(), mask) + ref.l1_loss(x_ref, target.double(), mask)
+        ref.masked_ssim(x_ref, target.double(), mask) + ref.masked_l1(x_ref, target.double(), mask)
     ).backward()
     assert (x.grad.double() - x_ref.grad).abs().max().item() < 1e-7
     # a target that requires grad falls back to plain torch and receives a gradient
@@ -139,7 +139,7 @@ def test_thread_count_does_not_change_bits(monkeypatch):
     for threads in ("1", "2", "4"):
         monkeypatch.setenv("URHEAD_NUM_THREADS", threads)
         results.append(
-            [t for fn in (ssim_loss, l1_loss) for t in value_and_grad(fn, image, target, mask)]
+            [t for fn in (masked_ssim, masked_l1) for t in value_and_grad(fn, image, target, mask)]
         )
     for other in results[1:]:
         for a, b in zip(results[0], other, strict=True):
@@ -148,20 +148,20 @@ def test_thread_count_does_not_change_bits(monkeypatch):
 
 def test_scaled_loss_scales_the_gradient():
     image, target = images(12, 19, seed=13)
-    _, grad = value_and_grad(ssim_loss, image, target, None)
+    _, grad = value_and_grad(masked_ssim, image, target, None)
     x = image.clone().requires_grad_(True)
-    (0.2 * (1 - ssim_loss(x, target))).backward()
+    (0.2 * (1 - masked_ssim(x, target))).backward()
     assert torch.allclose(x.grad, -0.2 * grad, rtol=1e-15, atol=0)
 
 
 def test_no_grad_needed_returns_the_same_value():
     image, target = images(20, 20, seed=15)
-    with_grad = ssim_loss(image.clone().requires_grad_(True), target)
-    assert ssim_loss(image, target).item() == with_grad.item()
-    assert not ssim_loss(image, target).requires_grad
+    with_grad = masked_ssim(image.clone().requires_grad_(True), target)
+    assert masked_ssim(image, target).item() == with_grad.item()
+    assert not masked_ssim(image, target).requires_grad
 
 
-@pytest.mark.parametrize("op", [ssim_loss, l1_loss])
+@pytest.mark.parametrize("op", [masked_ssim, masked_l1])
 def test_bad_inputs_raise_typed_errors_naming_the_argument(op):
     image, target = images(8, 9)
     bad = image.clone()

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from urhead.cli import main
-from urhead.use.stlpips import StLpips, load_stlpips, packaged_weights
+from urhead.eval.stlpips import StLpips, load_stlpips, packaged_weights
 from use_avatar import make_use_avatar
 
 

@@ -49,3 +49,29 @@ def test_texels_outside_lookups_are_absent():
     assert tex.grad is None
     assert rows.shape[1] <= 8  # at most 4 texels per lookup
     assert int(rows[0].min()) >= 64 * 3 // 4 - 2 and int(rows[1].max()) <= 64 // 4 + 2
+
+
+def test_accumulating_gather_fills_the_source_grad_once_per_backward():
+    g = torch.Generator().manual_seed(1)
+    tex = torch.rand(9, 11, 3, generator=g)
+    uvs = [torch.rand(n, 2, generator=g) for n in (30, 12)]
+    weights = [torch.randn(u.shape[0], 3, generator=g) for u in uvs]
+
+    explicit = TextureGather(tex.clone().requires_grad_(True))
+    sum((explicit.sample(u) * w).sum() for u, w in zip(uvs, weights, strict=True)).backward()
+    expected = explicit.gradient()
+
+    leaf = tex.clone().requires_grad_(True)
+    gather = TextureGather(leaf, accumulate=True)
+    sum((gather.sample(u) * w).sum() for u, w in zip(uvs, weights, strict=True)).backward()
+    assert leaf.grad.is_sparse and leaf.grad.is_coalesced()
+    assert torch.equal(leaf.grad.indices(), expected.indices())
+    assert torch.equal(leaf.grad.values(), expected.values())
+    assert gather.gradient() is None  # consumed by the backward pass
+
+    (gather.sample(uvs[0]) * weights[0]).sum().backward()  # a second pass adds to it
+    alone = TextureGather(tex.clone().requires_grad_(True))
+    (alone.sample(uvs[0]) * weights[0]).sum().backward()
+    assert torch.allclose(
+        leaf.grad.to_dense(), expected.to_dense() + alone.gradient().to_dense(), atol=1e-6
+    )

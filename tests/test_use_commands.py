@@ -18,10 +18,10 @@ import torch
 from urhead.cli import main
 from urhead.data import load_subject
 from urhead.eval import RefineSettings, evaluate_frames
+from urhead.eval.lpips import VARIANTS, load_lpips
 from urhead.model import load_avatar
 from urhead.model.avatar import POSE_SIZE
 from urhead.use.common import avatar_camera, open_avatar
-from urhead.use.lpips import VARIANTS, load_lpips
 from urhead.use.orbit import camera_up, default_orbit_angles, head_yaws
 from urhead.use.panels import label_bar_height
 from urhead.use.reenact import driven_params, load_driver

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from urhead.data import load_subject
-from urhead.data.synthetic import SynthConfig, synthesize
+from urhead.data.synth.subject import SynthConfig, synthesize
 from urhead.head import procedural_head
 from urhead.model import build_avatar, save_avatar
 from urhead.model.avatar import POSE_SIZE

@@ -25,7 +25,7 @@ import urhead
 from sections.common import table
 from urhead.config import FIT_PRESETS, FitConfig
 from urhead.data import load_subject
-from urhead.data.synthetic import SynthConfig, synthesize
+from urhead.data.synth.subject import SynthConfig, synthesize
 from urhead.head import procedural_head
 from urhead.train.trainer import Trainer
 

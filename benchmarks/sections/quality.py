@@ -19,7 +19,7 @@ import torch
 from sections.common import save, table
 from urhead.config import FIT_PRESETS, FitConfig
 from urhead.data import load_subject
-from urhead.data.synthetic import SynthConfig, synthesize
+from urhead.data.synth.subject import SynthConfig, synthesize
 from urhead.head import procedural_head
 from urhead.model import MapLayout
 from urhead.train.trainer import Trainer

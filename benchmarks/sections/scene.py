@@ -11,7 +11,7 @@ from pathlib import Path
 
 from urhead.config import FitConfig
 from urhead.data import load_subject
-from urhead.data.synthetic import SynthConfig, synthesize
+from urhead.data.synth.subject import SynthConfig, synthesize
 from urhead.head import procedural_head
 from urhead.train.trainer import Trainer
 

@@ -7,7 +7,6 @@ from dataclasses import dataclass
 
 import torch
 
-from urhead import _core
 from urhead.errors import DTypeError, ShapeError
 
 
@@ -47,7 +46,10 @@ class Camera:
                 raise DTypeError(f"{name} must be an int, got {type(value).__name__}")
         object.__setattr__(self, "near", float(self.near))
         object.__setattr__(self, "far", float(self.far))
-        _core.check_camera(self.core_args())
+        # Imported here: urhead.ops imports this module.
+        from urhead.ops._bridge import native
+
+        native("check_camera")(self.core_args())
 
     def resized(self, width: int, height: int) -> Camera:
         """The same camera for an image resampled to ``width`` × ``height``: focal lengths

@@ -22,7 +22,7 @@ COMMANDS = {  # name: (module, one-line summary; the module's own help= says the
         "convert FLAME's generic_model.pkl / flame2023.pkl to a urhead head (.npz)",
     ),
     "synth": (
-        "urhead.data.synthetic",
+        "urhead.data.synth.subject",
         "make a synthetic ground-truth subject (ray-traced) in the VHAP layout",
     ),
     "fit": ("urhead.train.command", "fit an avatar to a subject (VHAP / GaussianAvatars layout)"),
@@ -30,7 +30,7 @@ COMMANDS = {  # name: (module, one-line summary; the module's own help= says the
         "urhead.train.many",
         "fit many subjects as Ray tasks (a local Ray instance or a cluster)",
     ),
-    "eval": ("urhead.use.evaluate", "score an avatar on a subject's held-out frames"),
+    "eval": ("urhead.use.eval_report", "score an avatar on a subject's held-out frames"),
     "render": (
         "urhead.use.render",
         "render a subject's frames side by side with the avatar, or an orbit",

@@ -19,17 +19,17 @@ import math
 
 import torch
 
-from urhead import _core
 from urhead.errors import DTypeError
+from urhead.ops._bridge import native
 
-_ALLOCATORS = {torch.float32: _core.huge_page_zeros_f32, torch.int32: _core.huge_page_zeros_i32}
+_ALLOCATORS = {torch.float32: "huge_page_zeros_f32", torch.int32: "huge_page_zeros_i32"}
 
 
 def zeros(shape: tuple[int, ...] | torch.Size, dtype: torch.dtype = torch.float32) -> torch.Tensor:
     """A contiguous tensor of zeros of ``shape`` (float32 or int32) on huge pages."""
     if dtype not in _ALLOCATORS:
         raise DTypeError(f"huge-page tensors are float32 or int32, got {dtype}")
-    flat = torch.from_numpy(_ALLOCATORS[dtype](math.prod(shape)))
+    flat = torch.from_numpy(native(_ALLOCATORS[dtype])(math.prod(shape)))
     return flat.reshape(shape)
 
 

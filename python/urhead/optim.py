@@ -7,9 +7,10 @@ from dataclasses import dataclass
 
 import torch
 
-from urhead import _core, hugepages
+from urhead import hugepages
 from urhead._threads import num_threads
 from urhead.errors import DTypeError, InvalidArgumentError, ShapeError
+from urhead.ops._bridge import native
 
 
 def _channel_lr(lr, channels: int) -> torch.Tensor:
@@ -46,7 +47,7 @@ def rows_and_values(param: torch.Tensor, grad: torch.Tensor) -> tuple[torch.Tens
     return rows, flat[rows].to(torch.float32).contiguous()
 
 
-RowJournal = _core.RowJournal
+RowJournal = native("RowJournal")
 """``RowJournal(rows, channels)``: the values the rows of one ``(rows, channels)`` table had
 before steps given it first changed them since its last ``clear()``; ``restore(param,
 exp_avg, exp_avg_sq, steps)`` (flat ``(N, C)`` views and ``(N,)`` counts) writes them back.
@@ -154,7 +155,7 @@ class SparseAdam(torch.optim.Optimizer):
         if rows.numel() == 0:
             return None
         beta1, beta2 = group["betas"]
-        rejected, non_finite, peaks = _core.sparse_adam_step(
+        rejected, non_finite, peaks = native("sparse_adam_step")(
             p.detach().numpy().reshape(-1, channels),
             state["exp_avg"].numpy().reshape(-1, channels),
             state["exp_avg_sq"].numpy().reshape(-1, channels),

@@ -1,5 +1,7 @@
 """Real spherical harmonics in the 3D Gaussian Splatting convention (constants and signs),
-shared by the mesh branch (per-pixel colour from the colour map) and the references.
+in plain torch: the kernels' references, the initial colour map, the export and its SH
+rotation. The renderers evaluate SH in Rust (``urhead_core::sh``, through
+:func:`urhead.ops.sh_shade` and the splatting kernels).
 
 A colour is ``max(Σ_k basis_k(dir)·coeff_k + 0.5, 0)`` with ``dir`` the unit direction from
 the camera centre to the surface point; coefficients are (..., K, 3) with K = (degree + 1)².

@@ -1,5 +1,5 @@
 """Subjects: reading and writing the VHAP / GaussianAvatars dataset layout, and the
-synthetic ground-truth subjects (:mod:`urhead.data.synthetic`)."""
+synthetic ground-truth subjects (:mod:`urhead.data.synth`)."""
 
 from urhead.data.layout import DatasetError, MissingFileError, decode_normals, encode_normals
 from urhead.data.reader import Frame, FrameSequence, Subject, load_subject

@@ -9,8 +9,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from urhead._atomic import c_library_path, write_bytes
 from urhead.data.layout import DatasetError, MissingFileError
-from urhead.files import c_library_path, write_bytes
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}  # PNG colour type → channels after decoding

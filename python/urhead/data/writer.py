@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from urhead._atomic import commit_folder, temporary_folder
 from urhead.camera import Camera
 from urhead.data.images import to_uint8, write_png
 from urhead.data.layout import (
@@ -28,7 +29,6 @@ from urhead.data.layout import (
     flame_file,
     frame_stem,
 )
-from urhead.files import commit_folder, temporary_folder
 
 
 def opengl_c2w(camera: Camera) -> np.ndarray:

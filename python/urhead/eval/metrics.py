@@ -1,21 +1,20 @@
-"""Image metrics of an avatar over a sequence of frames (FORMATS.md "Evaluation protocol"),
-on the subject's background: PSNR inside the head mask (``psnr``) and over the full image
-(``psnr_full``), SSIM inside the mask, PSNR of the mesh branch alone; the same PSNRs after
-test-time refinement of the held-out frames' FLAME rows (``psnr_refined``,
-``psnr_refined_full``) when asked for. LPIPS needs network weights that cannot be
-downloaded here; it is None unless a caller supplies a scorer. ST-LPIPS-alex
-(``stlpips_alex``, :mod:`urhead.use.stlpips`) likewise, inside the mask, as ``urhead eval``
-scores it."""
+"""Image metrics of an avatar over a sequence of frames (FORMATS.md "Evaluation protocol"):
+the means of the per-frame loop (:mod:`urhead.eval.per_frame`) — PSNR inside the head mask
+(``psnr``) and over the full image (``psnr_full``), SSIM inside the mask, PSNR of the mesh
+branch alone; the same PSNRs after test-time refinement of the held-out frames' FLAME rows
+(``psnr_refined``, ``psnr_refined_full``) when asked for. LPIPS needs network weights that
+cannot be downloaded here; it is None unless a caller supplies a scorer. ST-LPIPS-alex
+(``stlpips_alex``, :mod:`urhead.eval.stlpips`) likewise, inside the mask."""
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
+from urhead.eval.per_frame import mean, score_frames
 from urhead.eval.refine import RefineSettings, refine_sequence
-from urhead.losses import psnr, ssim
 from urhead.model.avatar import Avatar, FlameParams
 
 
@@ -43,29 +42,6 @@ def frame_params(avatar: Avatar, frame) -> FlameParams:
     return avatar.params_from_flame(frame.flame)
 
 
-def _mean(xs):
-    return sum(xs) / len(xs) if xs else None
-
-
-@torch.no_grad()
-def _score(avatar, frames, params, *, occlusion_aware, mesh_only, lpips, stlpips=None):
-    per = {"psnr": [], "psnr_full": [], "ssim": [], "mesh": [], "lpips": [], "stlpips": []}
-    for frame, p in zip(frames, params, strict=True):
-        out = avatar.render(p, frame.camera, occlusion_aware=occlusion_aware)
-        image = out.image.clamp(0, 1)
-        per["psnr"].append(float(psnr(image, frame.image, frame.mask)))
-        per["psnr_full"].append(float(psnr(image, frame.image)))
-        per["ssim"].append(float(ssim(image, frame.image, frame.mask)))
-        if mesh_only:
-            mesh = out.mesh.image.clamp(0, 1)
-            per["mesh"].append(float(psnr(mesh, frame.image, frame.mask)))
-        if lpips is not None:
-            per["lpips"].append(float(lpips(image, frame.image, frame.mask)))
-        if stlpips is not None:
-            per["stlpips"].append(float(stlpips(image, frame.image, frame.mask)))
-    return per
-
-
 def evaluate_frames(
     avatar: Avatar,
     frames: Sequence,
@@ -90,37 +66,33 @@ def evaluate_frames(
         params = [frame_params(avatar, f) for f in frames]
     elif len(params) != len(frames):
         raise ValueError(f"{len(params)} parameter sets for {len(frames)} frames")
-    per = _score(
+    per = score_frames(
         avatar,
         frames,
         params,
         occlusion_aware=occlusion_aware,
         mesh_only=mesh_only,
-        lpips=lpips,
+        perceptual={} if lpips is None else {"lpips": lpips},
         stlpips=stlpips,
     )
     scores = FrameScores(
-        psnr=_mean(per["psnr"]),
-        psnr_full=_mean(per["psnr_full"]),
-        ssim=_mean(per["ssim"]),
-        psnr_mesh_only=_mean(per["mesh"]),
-        lpips=_mean(per["lpips"]),
-        per_frame_psnr=tuple(per["psnr"]),
-        stlpips_alex=_mean(per["stlpips"]),
+        psnr=mean(per.psnr),
+        psnr_full=mean(per.psnr_full),
+        ssim=mean(per.ssim),
+        psnr_mesh_only=mean(per.psnr_mesh_only),
+        lpips=mean(per.perceptual.get("lpips", [])),
+        per_frame_psnr=tuple(per.psnr),
+        stlpips_alex=mean(per.stlpips_alex),
     )
     if refine is None or refine.total_steps == 0:
         return scores
     refined = refine_params_of(avatar, frames, refine, occlusion_aware, progress, params)
-    after = _score(
-        avatar, frames, refined, occlusion_aware=occlusion_aware, mesh_only=False, lpips=None
-    )
-    return FrameScores(
-        **{
-            **scores.__dict__,
-            "psnr_refined": _mean(after["psnr"]),
-            "psnr_refined_full": _mean(after["psnr_full"]),
-            "ssim_refined": _mean(after["ssim"]),
-        }
+    after = score_frames(avatar, frames, refined, occlusion_aware=occlusion_aware)
+    return replace(
+        scores,
+        psnr_refined=mean(after.psnr),
+        psnr_refined_full=mean(after.psnr_full),
+        ssim_refined=mean(after.ssim),
     )
 
 

@@ -17,6 +17,7 @@ from typing import BinaryIO
 import numpy as np
 import torch
 
+from urhead._atomic import write_file_atomically
 from urhead.errors import (
     DTypeError,
     IndexRangeError,
@@ -24,7 +25,6 @@ from urhead.errors import (
     ShapeError,
     reading,
 )
-from urhead.files import write_file_atomically
 
 FORMAT_VERSION = 1
 """Version of the ``.npz`` head format written by :func:`save_head`."""
@@ -45,6 +45,31 @@ mouth plate; ``teeth`` the two teeth rows."""
 
 JOINT_NAMES = ("root", "neck", "jaw", "left_eye", "right_eye")
 """FLAME's joints; pose vectors are (global, neck, jaw, left eye, right eye) axis-angles."""
+
+
+@dataclass(frozen=True, eq=False)
+class LbsTables:
+    """The constant tensors :func:`urhead.ops.lbs` takes, named as its keyword arguments
+    (``lbs(betas, pose, **tables)`` unpacks them)."""
+
+    v_template: torch.Tensor
+    """(V, 3) rest vertices."""
+    shapedirs: torch.Tensor
+    """(V, 3, NB) identity then expression blendshapes."""
+    posedirs: torch.Tensor
+    """(9·(J−1), V·3) pose correctives."""
+    j_regressor: torch.Tensor
+    """(J, V) joint regressor."""
+    parents: torch.Tensor
+    """(J,) int32 parent joint, −1 for the root."""
+    lbs_weights: torch.Tensor
+    """(V, J) skinning weights."""
+
+    def keys(self) -> list[str]:
+        return [f.name for f in fields(self)]
+
+    def __getitem__(self, name: str) -> torch.Tensor:
+        return getattr(self, name)
 
 
 @dataclass(frozen=True, eq=False)
@@ -131,12 +156,13 @@ class HeadModel:
         first, second, third = labels[:, 0], labels[:, 1], labels[:, 2]
         return np.where((second == third) & (second != first), second, first).astype(np.int32)
 
-    def lbs_tables(self, dtype: torch.dtype = torch.float32, num_shape=None, num_expr=None):
+    def lbs_tables(
+        self, dtype: torch.dtype = torch.float32, num_shape=None, num_expr=None
+    ) -> LbsTables:
         """The constant tensors :func:`urhead.ops.lbs` takes, in ``dtype``, with the first
         ``num_shape`` identity and ``num_expr`` expression columns (all by default).
 
-        Returns a dict with ``v_template, shapedirs, posedirs, j_regressor, parents,
-        lbs_weights``; build it once and reuse it across iterations.
+        Returns :class:`LbsTables`; build them once and reuse them across iterations.
         """
         ns = self.num_shape if num_shape is None else int(num_shape)
         ne = self.num_expr if num_expr is None else int(num_expr)
@@ -153,14 +179,14 @@ class HeadModel:
                 np.ascontiguousarray(a), dtype=dtype
             )  # a copy: arrays are read-only
 
-        return {
-            "v_template": tensor(self.v_template),
-            "shapedirs": tensor(shapedirs),
-            "posedirs": tensor(self.posedirs),
-            "j_regressor": tensor(self.j_regressor),
-            "parents": torch.tensor(self.parents),
-            "lbs_weights": tensor(self.lbs_weights),
-        }
+        return LbsTables(
+            v_template=tensor(self.v_template),
+            shapedirs=tensor(shapedirs),
+            posedirs=tensor(self.posedirs),
+            j_regressor=tensor(self.j_regressor),
+            parents=torch.tensor(self.parents),
+            lbs_weights=tensor(self.lbs_weights),
+        )
 
     def skin(self, shape=None, expr=None, pose=None, transl=None):
         """Pose the head with :func:`urhead.ops.lbs` (differentiable in its inputs).

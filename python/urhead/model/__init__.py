@@ -2,16 +2,17 @@
 the joint mesh + Gaussian renderer, construction and the avatar directory."""
 
 from urhead.model.avatar import Avatar, FlameParams, GaussianRender, MeshRender, Render
-from urhead.model.build import build_avatar, frame_table, set_gaussians
+from urhead.model.build import build_avatar, frame_table
 from urhead.model.io import load_avatar, save_avatar
-from urhead.model.layout import MapLayout
-from urhead.model.sampling import ErrorAccumulator, UvSurface
+from urhead.model.map_layout import MapLayout
+from urhead.model.sampling import ErrorAccumulator, GaussianSampler, UvSurface, set_gaussians
 
 __all__ = [
     "Avatar",
     "ErrorAccumulator",
     "FlameParams",
     "GaussianRender",
+    "GaussianSampler",
     "MapLayout",
     "MeshRender",
     "Render",

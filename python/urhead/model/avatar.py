@@ -13,16 +13,15 @@ paper's Eq. 2, with P the undisplaced posed mesh at that point: at a vertex the 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
 import numpy as np
 import torch
 
 from urhead.camera import Camera
-from urhead.head.model import HeadModel
-from urhead.losses import uniform_laplacian
-from urhead.model.layout import MapLayout
+from urhead.head.model import HeadModel, LbsTables
+from urhead.model.map_layout import MapLayout
 from urhead.ops import (
     antialias,
     antialias_topology,
@@ -122,6 +121,35 @@ class Render(NamedTuple):
     gaussians: GaussianRender | None
 
 
+class PixelRays:
+    """(H·W, 3) float32 unit world directions of a camera's pixel rays (from the camera
+    centre through each pixel centre), kept for the last camera asked for: a fit renders
+    the same camera over and over."""
+
+    def __init__(self):
+        self._key: str | None = None
+        self._rays: torch.Tensor | None = None
+
+    def __call__(self, camera: Camera) -> torch.Tensor:
+        key = repr(camera.core_args())
+        if key != self._key:
+            self._rays, self._key = _pixel_rays(camera), key
+        return self._rays
+
+
+def _pixel_rays(camera: Camera) -> torch.Tensor:
+    h, w = camera.height, camera.width
+    ys, xs = torch.meshgrid(
+        torch.arange(h, dtype=torch.float64) + 0.5,
+        torch.arange(w, dtype=torch.float64) + 0.5,
+        indexing="ij",
+    )
+    k = camera.K.double()
+    cam = torch.stack([(xs - k[0, 2]) / k[0, 0], (ys - k[1, 2]) / k[1, 1], torch.ones_like(xs)], -1)
+    world = cam.reshape(-1, 3) @ camera.viewmat[:3, :3].double()  # Rᵀ applied to rows
+    return (world / world.norm(dim=-1, keepdim=True)).float().contiguous()
+
+
 @dataclass
 class Avatar:
     """Everything a fitted avatar is. Tensors are float32 on the CPU.
@@ -148,7 +176,8 @@ class Avatar:
     frame_params: torch.Tensor
     background: torch.Tensor
     depth_eps: float = 0.01
-    _tables: dict = field(default=None, init=False, repr=False)
+    _tables: HeadTables | None = field(default=None, init=False, repr=False)
+    _rays: PixelRays = field(default_factory=PixelRays, init=False, repr=False)
 
     @property
     def num_expr(self) -> int:
@@ -184,7 +213,7 @@ class Avatar:
 
     # --- rendering -------------------------------------------------------------------
 
-    def tables(self) -> dict:
+    def tables(self) -> HeadTables:
         """Constant tensors derived from the head and identity, built once."""
         if self._tables is None:
             self._tables = head_tables(self.head, self.shape, self.static_offset, self.num_expr)
@@ -235,7 +264,7 @@ class Avatar:
             params.expr[None].contiguous(),
             params.pose[None].contiguous(),
             transl=params.transl[None].contiguous(),
-            **self.tables()["lbs"],
+            **self.tables().lbs,
         )
         return skinned.verts[0], skinned.rotations[0]
 
@@ -245,7 +274,7 @@ class Avatar:
 
     def displace(self, verts, rotations, gather=None) -> tuple[torch.Tensor, torch.Tensor]:
         """``(v̂ (V, 3), v̂ − v)``: each vertex moved by D along its posed normal."""
-        at_vertex = self.layout.split(self.lookup(self.tables()["vertex_uv"], gather))
+        at_vertex = self.layout.split(self.lookup(self.tables().vertex_uv, gather))
         vertex_normal = _rotate_normalize(rotations, at_vertex.normal)
         offsets = at_vertex.displacement[:, None] * vertex_normal
         return verts + offsets, offsets
@@ -257,23 +286,21 @@ class Avatar:
         antialias over the background."""
         t = self.tables()
         layout = self.layout
-        raster = rasterize(displaced, t["faces"], camera)
-        uv_image = interpolate(t["uv_coords"], raster, t["uv_faces"])
+        raster = rasterize(displaced, t.faces, camera)
+        uv_image = interpolate(t.uv_coords, raster, t.uv_faces)
         h, w = camera.height, camera.width
         pixels = (raster.tri_id.reshape(-1) >= 0).nonzero()[:, 0]
         uv = uv_image.reshape(-1, 2)[pixels]
         rows = self.lookup(uv.contiguous(), gather)
         samples = layout.split(rows)
-        rot_image = interpolate(rotations.reshape(-1, 9), raster, t["faces"])
+        rot_image = interpolate(rotations.reshape(-1, 9), raster, t.faces)
         pixel_rot = rot_image.reshape(-1, 9)[pixels].reshape(-1, 3, 3)
-        rays = self._pixel_rays(camera)[pixels]
+        rays = self._rays(camera)[pixels]
         rgb = self._sh_color(rows, rays, pixel_rot.detach(), sh_degree)
         background = torch.cat([self.background, self.background.new_zeros(1)])
         flat = background.expand(h * w, 4).clone()
         flat = flat.index_put((pixels,), torch.cat([rgb, rgb.new_ones(rgb.shape[0], 1)], 1))
-        shaded = antialias(
-            flat.reshape(h, w, 4), raster, displaced, t["faces"], camera, t["topology"]
-        )
+        shaded = antialias(flat.reshape(h, w, 4), raster, displaced, t.faces, camera, t.topology)
         normals = None
         if want_normals:
             world = _rotate_normalize(pixel_rot, samples.normal)
@@ -294,7 +321,7 @@ class Avatar:
         surface (P + (D + E)·n with the offset map E), rotation from the posed normal,
         scale, opacity and colour from the maps."""
         layout = self.layout
-        face_verts = self.tables()["faces_long"][self.gaussian_face]  # (N, 3)
+        face_verts = self.tables().faces_long[self.gaussian_face]  # (N, 3)
         bary = self.gaussian_bary[:, :, None]
         surface = (verts[face_verts] * bary).sum(1)
         frames = (rotations[face_verts] * bary[..., None]).sum(1)
@@ -351,16 +378,6 @@ class Avatar:
         gain = 1 + (rows[:, self.layout.shading_maps] * features).sum(-1)
         return rgb * gain[:, None]
 
-    def _pixel_rays(self, camera: Camera) -> torch.Tensor:
-        """(H·W, 3) unit world directions of the pixels' rays (from the camera centre to
-        whatever surface a pixel sees), computed once per camera."""
-        key = repr(camera.core_args())
-        cache = self.tables()["pixel_rays"]
-        if key not in cache:
-            cache.clear()
-            cache[key] = _pixel_rays(camera)
-        return cache[key]
-
 
 def _rotate_normalize(rotations: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
     """(N, 3, 3) rotations applied to (N, 3) normals, normalised (zero stays zero)."""
@@ -368,43 +385,50 @@ def _rotate_normalize(rotations: torch.Tensor, normals: torch.Tensor) -> torch.T
     return n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 
-def _pixel_rays(camera: Camera) -> torch.Tensor:
-    h, w = camera.height, camera.width
-    ys, xs = torch.meshgrid(
-        torch.arange(h, dtype=torch.float64) + 0.5,
-        torch.arange(w, dtype=torch.float64) + 0.5,
-        indexing="ij",
-    )
-    k = camera.K.double()
-    cam = torch.stack([(xs - k[0, 2]) / k[0, 0], (ys - k[1, 2]) / k[1, 1], torch.ones_like(xs)], -1)
-    world = cam.reshape(-1, 3) @ camera.viewmat[:3, :3].double()  # Rᵀ applied to rows
-    return (world / world.norm(dim=-1, keepdim=True)).float().contiguous()
+@dataclass(frozen=True, eq=False)
+class HeadTables:
+    """The constant tensors rendering needs, derived from the head and the identity."""
+
+    lbs: LbsTables
+    """Skinning tables with the identity baked into the template (expression columns only)."""
+    faces: torch.Tensor
+    """(F, 3) int32 geometry faces."""
+    faces_long: torch.Tensor
+    """(F, 3) int64, for indexing."""
+    uv_coords: torch.Tensor
+    """(T, 2) UV coordinates."""
+    uv_faces: torch.Tensor
+    """(F, 3) int32 UV faces."""
+    vertex_uv: torch.Tensor
+    """(V, 2) one UV point per vertex (seam-free)."""
+    topology: torch.Tensor
+    """The antialias edge topology of ``faces``."""
 
 
 def head_tables(
     head: HeadModel, shape: torch.Tensor, static_offset: torch.Tensor | None, num_expr: int
-) -> dict:
-    """The constant tensors rendering needs: skinning tables with the identity ``shape``
-    (and VHAP's ``static_offset``) baked into the template, so the skinning kernel carries
-    only the ``num_expr`` expression columns; faces, UVs, antialias topology, Laplacian."""
+) -> HeadTables:
+    """The skinning tables with the identity ``shape`` (and VHAP's ``static_offset``) baked
+    into the template, so the skinning kernel carries only the ``num_expr`` expression
+    columns; faces, UVs, antialias topology."""
     s = shape.shape[0]
     full = head.lbs_tables(torch.float32, num_shape=s, num_expr=num_expr)
-    shapedirs = full["shapedirs"]
-    template = full["v_template"] + (shapedirs[:, :, :s] @ shape)
+    shapedirs = full.shapedirs
+    template = full.v_template + (shapedirs[:, :, :s] @ shape)
     if static_offset is not None:
         template = template + static_offset
-    lbs_tables = dict(full)
-    lbs_tables["v_template"] = template.contiguous()
-    lbs_tables["shapedirs"] = shapedirs[:, :, s:].contiguous()
+    lbs_tables = replace(
+        full,
+        v_template=template.contiguous(),
+        shapedirs=shapedirs[:, :, s:].contiguous(),
+    )
     faces = torch.tensor(head.faces)
-    return {
-        "lbs": lbs_tables,
-        "faces": faces,
-        "faces_long": faces.long(),
-        "uv_coords": torch.tensor(head.uv_coords),
-        "uv_faces": torch.tensor(head.uv_faces),
-        "vertex_uv": torch.tensor(head.vertex_uv),
-        "topology": antialias_topology(faces, head.num_vertices),
-        "laplacian": uniform_laplacian(faces, head.num_vertices),
-        "pixel_rays": {},
-    }
+    return HeadTables(
+        lbs=lbs_tables,
+        faces=faces,
+        faces_long=faces.long(),
+        uv_coords=torch.tensor(head.uv_coords),
+        uv_faces=torch.tensor(head.uv_faces),
+        vertex_uv=torch.tensor(head.vertex_uv),
+        topology=antialias_topology(faces, head.num_vertices),
+    )

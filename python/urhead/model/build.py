@@ -9,17 +9,17 @@ import numpy as np
 import torch
 
 from urhead.errors import InvalidArgumentError
+from urhead.head.mesh import vertex_normals
 from urhead.head.model import HeadModel
 from urhead.model.avatar import Avatar, flame_rows
-from urhead.model.init import (
+from urhead.model.initial_maps import (
     initial_maps,
     project_colors,
     surface_area,
     texel_surface,
-    vertex_normals,
 )
-from urhead.model.layout import MapLayout
-from urhead.model.sampling import UvSurface
+from urhead.model.map_layout import MapLayout
+from urhead.model.sampling import UvSurface, set_gaussians
 from urhead.ops import lbs
 
 
@@ -87,8 +87,8 @@ def build_avatar(
         depth_eps=depth_eps,
     )
     tables = avatar.tables()
-    faces = tables["faces"]
-    rest = tables["lbs"]["v_template"]
+    faces = tables.faces
+    rest = tables.lbs.v_template
     uv_raster = texel_surface(head, resolution)
     colors = None
     if color_frames > 0:
@@ -98,7 +98,7 @@ def build_avatar(
         with torch.no_grad():
             for i in picks:
                 p = avatar.split_params(params[int(i)])
-                out = lbs(p.expr[None], p.pose[None], transl=p.transl[None], **tables["lbs"])
+                out = lbs(p.expr[None], p.pose[None], transl=p.transl[None], **tables.lbs)
                 posed.append(out.verts[0].contiguous())
                 normals.append(vertex_normals(out.verts[0], faces))
         colors = project_colors(posed, frames, faces, uv_raster, normals)
@@ -111,19 +111,3 @@ def build_avatar(
         surface = UvSurface(head.uv_coords, head.uv_faces)
         set_gaussians(avatar, surface, surface.uniform(initial_gaussians, rng))
     return avatar
-
-
-def set_gaussians(avatar: Avatar, surface: UvSurface, uv: np.ndarray) -> None:
-    """Replaces the avatar's Gaussians by those at UV points ``uv`` (N, 2) on the atlas,
-    ordered by 32-texel tile of the maps and then row-major inside it, so the lookups of
-    neighbouring Gaussians hit the same cache lines of a 2048² map."""
-    r = avatar.resolution
-    col = np.clip((uv[:, 0] * r).astype(np.int64), 0, r - 1)
-    row = np.clip(((1 - uv[:, 1]) * r).astype(np.int64), 0, r - 1)
-    uv = uv[np.lexsort((col, row, col // 32, row // 32))]
-    face, bary = surface.locate(uv)
-    if (face < 0).any():
-        raise InvalidArgumentError("Gaussian UV points must lie on the atlas")
-    avatar.gaussian_uv = torch.from_numpy(np.ascontiguousarray(uv, np.float32))
-    avatar.gaussian_face = torch.from_numpy(face)
-    avatar.gaussian_bary = torch.from_numpy(bary.astype(np.float32))

@@ -28,11 +28,11 @@ import numpy as np
 import torch
 
 from urhead import hugepages
+from urhead._atomic import write_bytes_atomically, write_directory_atomically
 from urhead.errors import InvalidArgumentError, NonFiniteError, ShapeError, reading
-from urhead.files import write_bytes_atomically, write_directory_atomically
 from urhead.head import head_fingerprint, load_head, save_head
 from urhead.model.avatar import POSE_SIZE, Avatar
-from urhead.model.layout import MapLayout
+from urhead.model.map_layout import MapLayout
 
 AVATAR_FORMAT = 1
 

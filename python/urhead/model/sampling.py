@@ -1,12 +1,20 @@
 """Where Gaussians live: UV points on the atlas, drawn uniformly or in proportion to the
-accumulated UV-space error (the paper's error-driven sampling, Sec. 3.3)."""
+accumulated UV-space error (the paper's error-driven sampling, Sec. 3.3), and the fit's
+sampling policy behind one seam (:class:`GaussianSampler`)."""
 
 from __future__ import annotations
+
+import logging
 
 import numpy as np
 import torch
 
+from urhead.errors import InvalidArgumentError
 from urhead.head.uv import UvLookup
+from urhead.model.avatar import Avatar, Render
+from urhead.ops import texture
+
+log = logging.getLogger("urhead.fit")
 
 
 class UvSurface:
@@ -86,3 +94,129 @@ class ErrorAccumulator:
     def load_state(self, state: dict) -> None:
         self.error.copy_(state["error"])
         self.count.copy_(state["count"])
+
+
+def set_gaussians(avatar: Avatar, surface: UvSurface, uv: np.ndarray) -> None:
+    """Replaces the avatar's Gaussians by those at UV points ``uv`` (N, 2) on the atlas,
+    ordered by 32-texel tile of the maps and then row-major inside it, so the lookups of
+    neighbouring Gaussians hit the same cache lines of a 2048² map."""
+    r = avatar.resolution
+    col = np.clip((uv[:, 0] * r).astype(np.int64), 0, r - 1)
+    row = np.clip(((1 - uv[:, 1]) * r).astype(np.int64), 0, r - 1)
+    uv = uv[np.lexsort((col, row, col // 32, row // 32))]
+    face, bary = surface.locate(uv)
+    if (face < 0).any():
+        raise InvalidArgumentError("Gaussian UV points must lie on the atlas")
+    avatar.gaussian_uv = torch.from_numpy(np.ascontiguousarray(uv, np.float32))
+    avatar.gaussian_face = torch.from_numpy(face)
+    avatar.gaussian_bary = torch.from_numpy(bary.astype(np.float32))
+
+
+class GaussianSampler:
+    """The fit's Gaussian sampling policy, behind one seam (the pattern of gsplat's
+    strategies): the trainer calls :meth:`observe` after each applied step and
+    :meth:`step_end` after each iteration; the sampler owns its state (the UV error, each
+    Gaussian's largest screen radius) and its checkpoint entries (:meth:`state`).
+
+    Every ``sample_every`` iterations it prunes Gaussians that are faint
+    (opacity < ``prune_opacity``) or grew too large on screen, then draws new ones in
+    proportion to the UV error (``sampling="adaptive"``) or uniformly, at most
+    ``sample_cap`` per round and ``max_gaussians`` in all.
+    """
+
+    def __init__(self, config, head, num_gaussians: int):
+        self.config = config
+        self.adaptive = bool(config.gaussians) and config.sampling == "adaptive"
+        self.surface = UvSurface(head.uv_coords, head.uv_faces)
+        self.accumulator = ErrorAccumulator(min(config.error_grid, config.uv_resolution))
+        self.max_radius = torch.zeros(num_gaussians, dtype=torch.int32)
+
+    def observe(self, render, frame) -> None:
+        """After a step that was applied: charges the frame's error to UV (adaptive) and
+        records each Gaussian's screen radius."""
+        if self.adaptive:
+            self.accumulator.add(*uv_error_samples(render, frame))
+        if render.gaussians is not None:
+            radius = render.gaussians.radii.amax(-1)
+            self.max_radius = torch.maximum(self.max_radius, radius)
+
+    def step_end(self, avatar, frame, iteration: int) -> None:
+        """After ``iteration`` iterations are done: resamples on the schedule (never after
+        the last one)."""
+        c = self.config
+        if c.gaussians and iteration % c.sample_every == 0 and iteration < c.iterations:
+            self.resample(avatar, frame, iteration)
+
+    def resample(self, avatar, frame, iteration: int) -> None:
+        """Prunes faint or oversized Gaussians, then adds new ones where the UV error is
+        (or uniformly), within the per-round cap and the budget."""
+        c = self.config
+        with torch.no_grad():
+            at_gaussians = texture(avatar.maps, avatar.gaussian_uv)
+            opacity = torch.sigmoid(at_gaussians[:, avatar.layout.opacity])
+        side = max(frame.camera.width, frame.camera.height)
+        keep = (opacity >= c.prune_opacity) & (self.max_radius <= c.prune_screen_fraction * side)
+        uv = avatar.gaussian_uv[keep].numpy()
+        rng = np.random.default_rng([c.seed, 2, iteration])
+        room = max(min(c.sample_cap, c.max_gaussians - len(uv)), 0)
+        if self.adaptive:
+            new = self.accumulator.sample(room, self.surface, rng)
+            self.accumulator.reset()
+        else:
+            new = self.surface.uniform(room, rng)
+        set_gaussians(avatar, self.surface, np.concatenate([uv, new]))
+        self.max_radius = torch.zeros(avatar.num_gaussians, dtype=torch.int32)
+        log.debug(
+            "iteration %d: pruned %d, added %d → %d",
+            iteration,
+            int((~keep).sum()),
+            len(new),
+            avatar.num_gaussians,
+        )
+
+    def state(self) -> dict:
+        """The checkpoint entries: ``accumulator`` (the UV error) and ``max_radius``."""
+        return {"accumulator": self.accumulator.state(), "max_radius": self.max_radius}
+
+    def load_state(self, saved: dict) -> None:
+        self.accumulator.load_state(saved["accumulator"])
+        self.max_radius = saved["max_radius"]
+
+
+def uv_error_samples(render: Render, frame) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-pixel photometric error ‖I − I_gt‖₁ inside the mask, paired with the UV
+    coordinate it is charged to: a covered pixel's own UV; a pixel inside the mask that the
+    mesh misses (hair volume, a silhouette the mesh has not reached) is charged to the
+    nearest covered pixel, so that error draws Gaussians to the surface next to it.
+
+    Returns ``(uv (Q, 2), error (Q,))``.
+    """
+    h, w = frame.mask.shape
+    error = ((render.image.detach() - frame.image).abs().sum(-1) * frame.mask).reshape(-1)
+    pixels = render.mesh.pixels
+    if pixels.numel() == 0:
+        return render.mesh.uv, error[:0]
+    covered = torch.zeros(h * w, dtype=torch.bool)
+    covered[pixels] = True
+    missed = ((frame.mask.reshape(-1) > 0.5) & ~covered).nonzero()[:, 0]
+    if missed.numel() == 0:
+        return render.mesh.uv, error[pixels]
+    nearest = nearest_pixel(covered.reshape(h, w))[missed]
+    slot = torch.empty(h * w, dtype=torch.int64)
+    slot[pixels] = torch.arange(pixels.numel())
+    uv = torch.cat([render.mesh.uv, render.mesh.uv[slot[nearest]]])
+    return uv, torch.cat([error[pixels], error[missed]])
+
+
+def nearest_pixel(covered: torch.Tensor) -> torch.Tensor:
+    """(H·W,) int64: for every pixel, the flat index of the nearest ``covered`` pixel
+    (itself when covered); needs at least one covered pixel."""
+    import cv2
+
+    free = (~covered).numpy().astype(np.uint8)
+    _, labels = cv2.distanceTransformWithLabels(
+        free, cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_PIXEL
+    )
+    # Labels number the zero (covered) pixels 1, 2, … in scan order.
+    seeds = covered.reshape(-1).nonzero()[:, 0]
+    return seeds[torch.from_numpy(labels.reshape(-1).astype(np.int64)) - 1]

@@ -8,7 +8,7 @@ from urhead.ops.lbs import LbsOutput, lbs
 from urhead.ops.rasterize import RasterOutput, UvRasterOutput, rasterize, rasterize_uv
 from urhead.ops.shading import sh_shade
 from urhead.ops.splat import SplatOutput, normal_to_quat, rasterize_gaussians
-from urhead.ops.ssim import l1_loss, ssim_loss
+from urhead.ops.ssim import masked_l1, masked_ssim
 from urhead.ops.texture import TextureGather, texture
 
 __all__ = [
@@ -20,13 +20,13 @@ __all__ = [
     "antialias",
     "antialias_topology",
     "interpolate",
-    "l1_loss",
     "lbs",
+    "masked_l1",
+    "masked_ssim",
     "normal_to_quat",
     "rasterize",
     "rasterize_gaussians",
     "rasterize_uv",
     "sh_shade",
-    "ssim_loss",
     "texture",
 ]

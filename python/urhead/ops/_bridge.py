@@ -1,5 +1,6 @@
-"""Passing tensors to the Rust kernels: checks a caller can act on, then zero-copy numpy
-views. Shapes and values are validated in Rust (one source of truth for every kernel)."""
+"""The one way into the Rust extension (``urhead._core``): its entry points by name, and
+the tensor checks only Python can make before zero-copy numpy views are handed over.
+Which layer checks what is written once, in the binding's ``rust/urhead-py/src/lib.rs``."""
 
 from __future__ import annotations
 
@@ -51,10 +52,10 @@ def from_numpy(a: np.ndarray | None) -> torch.Tensor | None:
     return None if a is None else torch.from_numpy(a)
 
 
-def kernel(name: str, dtype: torch.dtype):
-    """The Rust entry point ``name`` for ``dtype`` (``lbs_forward`` → ``lbs_forward_f32``)."""
-    suffix = {torch.float32: "f32", torch.float64: "f64"}[dtype]
-    return getattr(_core, f"{name}_{suffix}")
+def native(name: str):
+    """The Rust entry point (function or class) ``name`` of ``urhead._core``; a kernel's
+    entry serves float32 and float64 (the dtype of its first float array)."""
+    return getattr(_core, name)
 
 
 def index_tensor(name: str, t: torch.Tensor) -> torch.Tensor:

@@ -4,10 +4,11 @@ than speed. Tests compare the Rust kernels (forward and autograd gradients) agai
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import torch
+import torch.nn.functional as F
 
-from urhead.losses import ssim_map
 from urhead.ops.lbs import LbsOutput
 from urhead.sh import sh_basis
 
@@ -581,26 +582,63 @@ def rasterize_gaussians(
     return image, t, means2d
 
 
-# --- Masked image losses (urhead.ops.ssim_loss / l1_loss) -----------------------------------
+# --- Masked image comparisons (urhead.ops.masked_ssim / masked_l1) --------------------------
+
+SSIM_WINDOW = 11
+SSIM_SIGMA = 1.5
+SSIM_C1 = 0.01**2
+SSIM_C2 = 0.03**2
 
 
-def _masked_pixel_mean(values: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
-    """Σ m·v / max(Σ m, 1) over (H, W) or (H, W, C) values, the mask repeated over C."""
-    weight = torch.ones(values.shape[:2], dtype=values.dtype) if mask is None else mask
-    weight = weight.to(values.dtype)
+@lru_cache(maxsize=4)
+def _gaussian_window(dtype: torch.dtype) -> torch.Tensor:
+    x = torch.arange(SSIM_WINDOW, dtype=torch.float64) - SSIM_WINDOW // 2
+    w = torch.exp(-(x**2) / (2 * SSIM_SIGMA**2))
+    return (w / w.sum()).to(dtype)
+
+
+def _blur(x: torch.Tensor) -> torch.Tensor:
+    """Separable Gaussian blur of (N, H, W) with zero padding (the 3DGS convention)."""
+    w = _gaussian_window(x.dtype)
+    x = x[:, None]
+    x = F.conv2d(x, w.view(1, 1, -1, 1), padding=(SSIM_WINDOW // 2, 0))
+    x = F.conv2d(x, w.view(1, 1, 1, -1), padding=(0, SSIM_WINDOW // 2))
+    return x[:, 0]
+
+
+def ssim_map(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Per-pixel SSIM (H, W) of (H, W, C) images (mean over channels), Gaussian window
+    11 × 11, σ = 1.5, C1 = 0.01², C2 = 0.03² (Wang et al. 2004, as in 3DGS)."""
+    x = image.permute(2, 0, 1)
+    y = target.permute(2, 0, 1)
+    mu_x, mu_y = _blur(x), _blur(y)
+    var_x = _blur(x * x) - mu_x**2
+    var_y = _blur(y * y) - mu_y**2
+    cov = _blur(x * y) - mu_x * mu_y
+    num = (2 * mu_x * mu_y + SSIM_C1) * (2 * cov + SSIM_C2)
+    den = (mu_x**2 + mu_y**2 + SSIM_C1) * (var_x + var_y + SSIM_C2)
+    return (num / den).mean(0)
+
+
+def masked_mean(values: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+    """Σ m·v / max(Σ m, 1) over (H, W) or (H, W, C) values, the mask repeated over C; the
+    plain mean without a mask."""
+    if mask is None:
+        return values.mean()
+    weight = mask.to(values.dtype)
     if values.dim() == 3:
         weight = weight[..., None].expand_as(values)
     return (values * weight).sum() / weight.sum().clamp_min(1)
 
 
-def ssim_loss(image, target, mask=None):
-    """Reference of :func:`urhead.ops.ssim_loss`: plain-torch SSIM map, masked mean."""
-    return _masked_pixel_mean(ssim_map(image, target), mask)
+def masked_ssim(image, target, mask=None):
+    """Reference of :func:`urhead.ops.masked_ssim`: plain-torch SSIM map, masked mean."""
+    return masked_mean(ssim_map(image, target), mask)
 
 
-def l1_loss(image, target, mask=None):
-    """Reference of :func:`urhead.ops.l1_loss`."""
-    return _masked_pixel_mean((image - target).abs(), mask)
+def masked_l1(image, target, mask=None):
+    """Reference of :func:`urhead.ops.masked_l1`."""
+    return masked_mean((image - target).abs(), mask)
 
 
 def sh_shade(coeffs, dirs, degree):

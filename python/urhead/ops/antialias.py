@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import torch
 
-from urhead import _core
 from urhead._threads import num_threads
 from urhead.camera import Camera
 from urhead.errors import DTypeError
@@ -15,7 +14,7 @@ from urhead.ops._bridge import (
     from_numpy,
     grad_to_numpy,
     index_tensor,
-    kernel,
+    native,
     to_numpy,
 )
 from urhead.ops.rasterize import RasterOutput
@@ -37,7 +36,7 @@ def antialias_topology(faces: torch.Tensor, num_verts: int | None = None) -> tor
     check_shape("faces", faces, 2, 3, "(F, 3) int32")
     if num_verts is None:
         num_verts = int(faces.max()) + 1 if faces.numel() else 0
-    topo = _core.edge_topology(to_numpy("faces", faces, torch.int32), num_verts)
+    topo = native("edge_topology")(to_numpy("faces", faces, torch.int32), num_verts)
     return torch.from_numpy(topo)
 
 
@@ -53,7 +52,7 @@ class _Antialias(torch.autograd.Function):
             to_numpy("faces", faces, torch.int32),
             to_numpy("topology", topology, torch.int32),
         )
-        out = kernel("antialias_forward", dtype)(*arrays, camera.core_args(), num_threads())
+        out = native("antialias_forward")(*arrays, camera.core_args(), num_threads())
         ctx.set_materialize_grads(False)
         ctx.save_for_backward(color, verts, tri_id, depth, faces, topology)
         ctx.camera = camera
@@ -66,7 +65,7 @@ class _Antialias(torch.autograd.Function):
             return (None,) * 7
         color, verts, tri_id, depth, faces, topology = ctx.saved_tensors
         dtype = color.dtype
-        v_color, v_verts = kernel("antialias_backward", dtype)(
+        v_color, v_verts = native("antialias_backward")(
             color.detach().numpy(),
             tri_id.numpy(),
             depth.detach().numpy(),

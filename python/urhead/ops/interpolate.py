@@ -12,7 +12,7 @@ from urhead.ops._bridge import (
     from_numpy,
     grad_to_numpy,
     index_tensor,
-    kernel,
+    native,
     to_numpy,
 )
 from urhead.ops.rasterize import RasterOutput, UvRasterOutput
@@ -22,7 +22,7 @@ class _Interpolate(torch.autograd.Function):
     @staticmethod
     def forward(ctx, attr, bary, tri_id, faces):
         dtype = attr.dtype
-        out = kernel("interpolate_forward", dtype)(
+        out = native("interpolate_forward")(
             to_numpy("attr", attr, dtype),
             to_numpy("faces", faces, torch.int32),
             to_numpy("tri_id", tri_id, torch.int32),
@@ -40,7 +40,7 @@ class _Interpolate(torch.autograd.Function):
             return None, None, None, None
         attr, bary, tri_id, faces = ctx.saved_tensors
         dtype = attr.dtype
-        v_attr, v_bary = kernel("interpolate_backward", dtype)(
+        v_attr, v_bary = native("interpolate_backward")(
             attr.detach().numpy(),
             faces.numpy(),
             tri_id.numpy(),

@@ -7,7 +7,7 @@ from typing import NamedTuple
 import torch
 
 from urhead._threads import num_threads
-from urhead.ops._bridge import float_dtype, from_numpy, grad_to_numpy, kernel, to_numpy
+from urhead.ops._bridge import float_dtype, from_numpy, grad_to_numpy, native, to_numpy
 
 
 class LbsOutput(NamedTuple):
@@ -39,7 +39,7 @@ class _Lbs(torch.autograd.Function):
             to_numpy("pose", pose, dtype),
             None if transl is None else to_numpy("transl", transl, dtype),
         ]
-        out = kernel("lbs_forward", dtype)(*args, *tables, num_threads())
+        out = native("lbs_forward")(*args, *tables, num_threads())
         verts, joints, rotations, v_shaped, v_posed, rest_joints = map(torch.from_numpy, out)
         ctx.set_materialize_grads(False)
         ctx.save_for_backward(
@@ -79,7 +79,7 @@ class _Lbs(torch.autograd.Function):
         needs = (need[0], need[1], need[2], need[3], need[4])
         if not any(needs):
             return (None,) * 9
-        grads = kernel("lbs_backward", dtype)(
+        grads = native("lbs_backward")(
             betas.numpy(),
             pose.numpy(),
             None if transl is None else transl.numpy(),

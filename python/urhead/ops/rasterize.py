@@ -15,7 +15,7 @@ from urhead.ops._bridge import (
     float_dtype,
     grad_to_numpy,
     index_tensor,
-    kernel,
+    native,
     to_numpy,
 )
 
@@ -41,7 +41,7 @@ class _Rasterize(torch.autograd.Function):
     @staticmethod
     def forward(ctx, verts, faces, camera):
         dtype = verts.dtype
-        out = kernel("rasterize_forward", dtype)(
+        out = native("rasterize_forward")(
             to_numpy("verts", verts, dtype),
             to_numpy("faces", faces, torch.int32),
             camera.core_args(),
@@ -60,7 +60,7 @@ class _Rasterize(torch.autograd.Function):
             return None, None, None
         verts, faces, tri_id = ctx.saved_tensors
         dtype = verts.dtype
-        v_verts = kernel("rasterize_backward", dtype)(
+        v_verts = native("rasterize_backward")(
             verts.detach().numpy(),
             faces.numpy(),
             ctx.camera.core_args(),
@@ -128,7 +128,7 @@ def rasterize_uv(
             raise DTypeError(f"{name} must be an int, got {type(side).__name__}")
         if side < 1:
             raise ShapeError(f"{name} must be ≥ 1, got {side}")
-    tri_id, bary = kernel("rasterize_uv", dtype)(
+    tri_id, bary = native("rasterize_uv")(
         to_numpy("uv_coords", uv_coords, dtype),
         to_numpy("uv_faces", uv_faces, torch.int32),
         height,

@@ -7,14 +7,14 @@ import torch
 
 from urhead._threads import num_threads
 from urhead.errors import DTypeError, InvalidArgumentError
-from urhead.ops._bridge import check_shape, float_dtype, grad_to_numpy, kernel, to_numpy
+from urhead.ops._bridge import check_shape, float_dtype, grad_to_numpy, native, to_numpy
 
 
 class _ShShade(torch.autograd.Function):
     @staticmethod
     def forward(ctx, coeffs, dirs, degree):
         dtype = coeffs.dtype
-        rgb = kernel("sh_shade_forward", dtype)(
+        rgb = native("sh_shade_forward")(
             to_numpy("coeffs", coeffs, dtype), to_numpy("dirs", dirs, dtype), degree, num_threads()
         )
         ctx.set_materialize_grads(False)
@@ -28,7 +28,7 @@ class _ShShade(torch.autograd.Function):
             return None, None, None
         coeffs, dirs = ctx.saved_tensors
         dtype = coeffs.dtype
-        v_coeffs = kernel("sh_shade_backward", dtype)(
+        v_coeffs = native("sh_shade_backward")(
             coeffs.detach().numpy(),
             dirs.detach().numpy(),
             ctx.degree,

@@ -23,7 +23,7 @@ from urhead.ops._bridge import (
     float_dtype,
     from_numpy,
     grad_to_numpy,
-    kernel,
+    native,
     to_numpy,
 )
 
@@ -57,7 +57,7 @@ class _Project(torch.autograd.Function):
             to_numpy("opacities", opacities, dtype),
             None if sh is None else to_numpy("sh", sh, dtype),
         ]
-        means2d, conics, depths, radii, colors = kernel("splat_project_forward", dtype)(
+        means2d, conics, depths, radii, colors = native("splat_project_forward")(
             *args, sh_degree, camera_args, num_threads()
         )
         ctx.set_materialize_grads(False)
@@ -79,7 +79,7 @@ class _Project(torch.autograd.Function):
         needs = (need[0], need[1], need[2], sh is not None and need[4])
         if not any(needs):
             return (None,) * 7
-        grads = kernel("splat_project_backward", dtype)(
+        grads = native("splat_project_backward")(
             means.detach().numpy(),
             quats.detach().numpy(),
             scales.detach().numpy(),
@@ -117,7 +117,7 @@ class _Rasterize(torch.autograd.Function):
             width,
             height,
         ]
-        image, transmittance, state, _pairs = kernel("splat_rasterize_forward", dtype)(
+        image, transmittance, state, _pairs = native("splat_rasterize_forward")(
             *args, num_threads()
         )
         ctx.set_materialize_grads(False)
@@ -138,7 +138,7 @@ class _Rasterize(torch.autograd.Function):
         if not any(need[:4]) and not need[6]:
             return (None,) * 10
         width, height = ctx.size
-        grads = kernel("splat_rasterize_backward", dtype)(
+        grads = native("splat_rasterize_backward")(
             ctx.state,
             means2d.detach().numpy(),
             conics.detach().numpy(),

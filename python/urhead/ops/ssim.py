@@ -1,4 +1,5 @@
-"""Masked SSIM and L1 image losses with Rust kernels (the training loop's loss stage).
+"""Mean SSIM (a similarity) and mean L1 (a loss) of two images inside a mask, with Rust
+kernels (the training loop's loss stage).
 
 Both kernels compute the value and, when ``image`` requires grad, its gradient in the same
 call (the SSIM gradient reuses the forward's blurred moments while they are in cache); the
@@ -14,14 +15,14 @@ from torch.autograd.function import once_differentiable
 
 from urhead._threads import num_threads
 from urhead.errors import InvalidArgumentError
-from urhead.ops._bridge import check_tensor, float_dtype, kernel, to_numpy
+from urhead.ops._bridge import check_tensor, float_dtype, native, to_numpy
 
 _NUMPY_DTYPES = {torch.float32: np.float32, torch.float64: np.float64}
 
 
-class _MaskedImageLoss(torch.autograd.Function):
+class _MaskedImageComparison(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, name, image, target, mask):
+    def forward(ctx, metric, image, target, mask):
         dtype = image.dtype
         args = (
             to_numpy("image", image, dtype),
@@ -30,10 +31,10 @@ class _MaskedImageLoss(torch.autograd.Function):
         )
         ctx.set_materialize_grads(False)
         if ctx.needs_input_grad[1]:
-            value, grad = kernel(f"{name}_grad", dtype)(*args, num_threads())
+            value, grad = native("masked_mean_grad")(metric, *args, num_threads())
             ctx.save_for_backward(torch.from_numpy(grad))
         else:
-            value = kernel(name, dtype)(*args, num_threads())
+            value = native("masked_mean")(metric, *args, num_threads())
         return torch.tensor(value, dtype=dtype)
 
     @staticmethod
@@ -47,29 +48,29 @@ class _MaskedImageLoss(torch.autograd.Function):
         return None, torch.from_numpy(scaled), None, None
 
 
-def _apply(name: str, image, target, mask) -> torch.Tensor:
+def _apply(metric: str, image, target, mask) -> torch.Tensor:
     dtype = float_dtype("image", image)
     for arg, t in (("target", target), ("mask", mask)):
         if t is not None and isinstance(t, torch.Tensor) and t.requires_grad:
             raise InvalidArgumentError(
                 f"{arg} must not require grad: only image is differentiated "
-                "(use urhead.losses for a plain-torch loss differentiable in every input)"
+                "(urhead.losses falls back to plain torch, differentiable in every input)"
             )
     if mask is not None:
         check_tensor("mask", mask)
         if mask.dtype != dtype and mask.dtype in (torch.bool, torch.float32, torch.float64):
             # (H, W) is small next to the images; numpy converts without thread start-up
             mask = torch.from_numpy(mask.detach().numpy().astype(_NUMPY_DTYPES[dtype]))
-    return _MaskedImageLoss.apply(name, image, target, mask)
+    return _MaskedImageComparison.apply(metric, image, target, mask)
 
 
-def ssim_loss(
+def masked_ssim(
     image: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None
 ) -> torch.Tensor:
     """Mean SSIM inside ``mask`` (a similarity: 1 for identical images), differentiable in
-    ``image``. Train with ``1 - ssim_loss(...)``.
+    ``image``. Train with ``1 - masked_ssim(...)``.
 
-    Per-pixel SSIM as :func:`urhead.losses.ssim_map` (Gaussian window 11, σ = 1.5, zero
+    Per-pixel SSIM as :func:`urhead.ops._reference.ssim_map` (Gaussian window 11, σ = 1.5, zero
     padding, C1 = 0.01², C2 = 0.03², mean over channels), then ``Σ m·ssim / max(Σ m, 1)``.
 
     Args:
@@ -80,12 +81,12 @@ def ssim_loss(
     Returns:
         A 0-dim tensor of ``image``'s dtype. An all-zero mask gives 0 with zero gradient.
     """
-    return _apply("masked_ssim", image, target, mask)
+    return _apply("ssim", image, target, mask)
 
 
-def l1_loss(
+def masked_l1(
     image: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None
 ) -> torch.Tensor:
     """Mean absolute difference inside ``mask``: ``Σ m·|image − target| / max(C·Σ m, 1)``,
-    differentiable in ``image`` (subgradient sign(0) = 0). Arguments as :func:`ssim_loss`."""
-    return _apply("masked_l1", image, target, mask)
+    differentiable in ``image`` (subgradient sign(0) = 0). Arguments as :func:`masked_ssim`."""
+    return _apply("l1", image, target, mask)

@@ -6,14 +6,14 @@ import torch
 
 from urhead._threads import num_threads
 from urhead.errors import DTypeError
-from urhead.ops._bridge import check_shape, float_dtype, from_numpy, grad_to_numpy, kernel, to_numpy
+from urhead.ops._bridge import check_shape, float_dtype, from_numpy, grad_to_numpy, native, to_numpy
 
 
 def _sample(tex: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     """The Rust bilinear lookup: (Ht, Wt, C) at (..., 2) → (..., C)."""
     dtype = tex.dtype
     flat_uv = uv.reshape(-1, 2) if uv.is_contiguous() else uv
-    out = kernel("texture_forward", dtype)(
+    out = native("texture_forward")(
         to_numpy("tex", tex, dtype), to_numpy("uv", flat_uv, dtype), num_threads()
     )
     return torch.from_numpy(out).reshape(*uv.shape[:-1], tex.shape[-1])
@@ -46,7 +46,7 @@ class _Texture(torch.autograd.Function):
         tex, uv = ctx.saved_tensors
         dtype = tex.dtype
         channels = tex.shape[-1]
-        indices, values, v_uv = kernel("texture_backward", dtype)(
+        indices, values, v_uv = native("texture_backward")(
             tex.detach().numpy(),
             uv.detach().reshape(-1, 2).numpy(),
             grad_to_numpy("v_out", v_out.reshape(-1, channels), dtype),
@@ -127,7 +127,7 @@ class _GatheredTexture(torch.autograd.Function):
         gather.record(flat_uv, v_out)
         if not ctx.needs_input_grad[0]:
             return None, None, None
-        _, _, v_uv = kernel("texture_backward", gather.tex.dtype)(
+        _, _, v_uv = native("texture_backward")(
             gather.tex.numpy(),
             flat_uv.numpy(),
             grad_to_numpy("v_out", v_out, gather.tex.dtype),
@@ -149,14 +149,18 @@ class TextureGather:
 
     Args:
         tex: (Ht, Wt, C) texture, usually a parameter with ``requires_grad`` (samples then
-            require grad); autograd leaves its ``.grad`` alone — use :meth:`gradient`.
+            require grad).
+        accumulate: at the end of each backward pass that reached a lookup, add the
+            lookups' gradient (:meth:`gradient`) to ``tex.grad`` as a leaf parameter's
+            would be; otherwise ``tex.grad`` is left alone and :meth:`gradient` hands it out.
     """
 
-    def __init__(self, tex: torch.Tensor):
+    def __init__(self, tex: torch.Tensor, *, accumulate: bool = False):
         float_dtype("tex", tex)
         check_shape("tex", tex, 3, None, "(Ht, Wt, C)")
         self.source = tex  # an input of every lookup, so samples require grad when it does
         self.tex = tex.detach()
+        self.accumulate = accumulate
         self._uv: list[torch.Tensor] = []
         self._grad: list[torch.Tensor] = []
 
@@ -166,8 +170,18 @@ class TextureGather:
         return _GatheredTexture.apply(uv.contiguous(), self.source, self)
 
     def record(self, uv: torch.Tensor, v_out: torch.Tensor) -> None:
+        if self.accumulate and not self._uv:
+            # The first lookup this pass: one kernel call once every lookup has recorded.
+            torch.autograd.Variable._execution_engine.queue_callback(self._accumulate)
         self._uv.append(uv)
         self._grad.append(v_out)
+
+    def _accumulate(self) -> None:
+        grad = self.gradient()
+        if grad is None:
+            return
+        source = self.source
+        source.grad = grad if source.grad is None else source.grad + grad
 
     def gradient(self) -> torch.Tensor | None:
         """The recorded lookups' texture gradient as a coalesced sparse COO tensor of
@@ -178,7 +192,7 @@ class TextureGather:
         self._uv.clear()
         self._grad.clear()
         dtype = self.tex.dtype
-        indices, values, _ = kernel("texture_backward", dtype)(
+        indices, values, _ = native("texture_backward")(
             self.tex.numpy(),
             uv.numpy(),
             grad_to_numpy("v_out", v_out, dtype),

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import torch
 
+from urhead._atomic import write_directory_atomically
 from urhead.errors import reading
-from urhead.files import write_directory_atomically
 from urhead.model.io import load_avatar, write_avatar_files
 
 CHECKPOINT_DIR = "checkpoint"

@@ -55,8 +55,8 @@ def fit_subject(
     checked before the work: the memory the maps need, ``out`` free of another running fit
     (locked for this one) and of a finished fit (unless ``resume`` or ``force``), the
     subject and the head."""
+    from urhead._atomic import folder_lock, remove_stale_temporaries
     from urhead.data import load_subject
-    from urhead.files import folder_lock, remove_stale_temporaries
     from urhead.head import load_head, procedural_head
     from urhead.train.memory import check_fit_memory
     from urhead.train.trainer import Trainer

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from urhead.config import FitConfig
 from urhead.errors import SizeLimitError
-from urhead.model.layout import MapLayout
+from urhead.model.map_layout import MapLayout
 
 MAP_COPIES = 3
 """The UV maps live three times over a fit: the maps and Adam's two moments (the map

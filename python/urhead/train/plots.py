@@ -5,7 +5,7 @@ from __future__ import annotations
 import io
 from pathlib import Path
 
-from urhead.files import write_bytes_atomically
+from urhead._atomic import write_bytes_atomically
 
 
 def plot_psnr_vs_time(history: list, path: Path, title: str) -> None:

@@ -8,8 +8,8 @@ import json
 from dataclasses import asdict
 from pathlib import Path
 
+from urhead._atomic import write_file_atomically
 from urhead.config import FitConfig
-from urhead.files import write_file_atomically
 
 SUMMARY = "summary.json"
 

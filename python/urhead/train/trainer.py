@@ -22,16 +22,18 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from urhead._atomic import write_bytes_atomically
 from urhead.config import FitConfig
 from urhead.data.background import subject_background
 from urhead.eval import RefineSettings, evaluate_frames
-from urhead.files import write_bytes_atomically
+from urhead.eval.per_frame import FLAME_PARAMETERS, METRIC_REGION
+from urhead.eval.stlpips import load_stlpips
 from urhead.head import head_fingerprint
 from urhead.losses import psnr
-from urhead.model import ErrorAccumulator, UvSurface, build_avatar, save_avatar, set_gaussians
+from urhead.model import GaussianSampler, build_avatar, save_avatar
 from urhead.model.avatar import Avatar, Render
 from urhead.model.io import add_to_description
-from urhead.ops import TextureGather, texture
+from urhead.ops import TextureGather
 from urhead.optim import SparseAdam
 from urhead.train.checkpoint import (
     find_checkpoint,
@@ -40,10 +42,9 @@ from urhead.train.checkpoint import (
     save_checkpoint,
 )
 from urhead.train.guard import StepGuard
-from urhead.train.loss import training_loss, uv_error_samples
+from urhead.train.objective import Objective
 from urhead.train.plots import plot_psnr_vs_time
 from urhead.train.units import check_metres
-from urhead.use.stlpips import load_stlpips
 
 log = logging.getLogger("urhead.fit")
 
@@ -59,9 +60,7 @@ class FitState:
     frames_opt: SparseAdam
     map_lr: torch.Tensor
     guard: StepGuard
-    accumulator: ErrorAccumulator
-    surface: UvSurface
-    max_radius: torch.Tensor
+    sampler: GaussianSampler
     iteration: int
     seconds: float
     history: list
@@ -115,8 +114,8 @@ class Trainer:
         self.out = Path(out)
         self.progress = progress
         self.use_normals = bool(config.normal_loss and subject.has_normals)
+        self.objective = Objective.for_fit(config, head, self.use_normals)
         self.gaussians = bool(config.gaussians)
-        self.adaptive = self.gaussians and config.sampling == "adaptive"
         self.held_out = subject.test if len(subject.test) else subject.val
         if len(subject.train) == 0:
             raise ValueError(f"{subject.root}: the subject has no training frames")
@@ -180,7 +179,7 @@ class Trainer:
             left_out.append("normal loss (switched off)")
         if not self.gaussians:
             left_out.append("Gaussian branch and its O, S maps (mesh only)")
-        elif not self.adaptive:
+        elif c.sampling != "adaptive":
             left_out.append("UV error accumulation (uniform sampling)")
         if c.mesh_term == 0 and self.gaussians:
             left_out.append("mesh-only L1 term")
@@ -230,9 +229,7 @@ class Trainer:
             frames_opt=frames_opt,
             map_lr=map_lr,
             guard=StepGuard(avatar, maps_opt, frames_opt, map_lr, start=saved["iteration"]),
-            accumulator=ErrorAccumulator(min(c.error_grid, c.uv_resolution)),
-            surface=UvSurface(self.head.uv_coords, self.head.uv_faces),
-            max_radius=torch.zeros(avatar.num_gaussians, dtype=torch.int32),
+            sampler=GaussianSampler(c, self.head, avatar.num_gaussians),
             iteration=saved["iteration"],
             seconds=saved["seconds"],
             history=list(saved["history"]),
@@ -240,8 +237,7 @@ class Trainer:
         if "maps_opt" in saved:
             maps_opt.load_state_dict(saved["maps_opt"])
             frames_opt.load_state_dict(saved["frames_opt"])
-            state.accumulator.load_state(saved["accumulator"])
-            state.max_radius = saved["max_radius"]
+            state.sampler.load_state(saved)
         if "guard" in saved:
             state.guard.load_state(saved["guard"])
         return state
@@ -259,7 +255,7 @@ class Trainer:
         for group in state.maps_opt.param_groups:
             group["lr"] = state.map_lr * uv_lr_factor(c, it)
         row_params = F.embedding(torch.tensor([row]), avatar.frame_params, sparse=True)[0]
-        gather = TextureGather(avatar.maps)
+        gather = TextureGather(avatar.maps, accumulate=True)  # backward fills maps.grad
         render = avatar.render(
             avatar.split_params(row_params),
             frame.camera,
@@ -269,32 +265,15 @@ class Trainer:
             gather=gather,
             sh_degree=active_sh_degree(c, it),
         )
-        loss = training_loss(
-            render,
-            frame,
-            lambda_ssim=c.lambda_ssim,
-            mesh_term=c.mesh_term,
-            lambda_normal=c.lambda_normal,
-            lambda_laplacian=c.lambda_laplacian,
-            laplacian=avatar.tables()["laplacian"],
-            use_normals=self.use_normals,
-            lambda_offset=c.lambda_offset,
-            lambda_alpha=c.lambda_alpha,
-        )
+        loss = self.objective(render, frame)
         loss.backward()
-        avatar.maps.grad = gather.gradient()
         if state.guard.step(it, row, loss.detach()):  # applies the step, or undoes it
-            if self.adaptive:
-                state.accumulator.add(*uv_error_samples(render, frame))
-            if render.gaussians is not None:
-                radius = render.gaussians.radii.amax(-1)
-                state.max_radius = torch.maximum(state.max_radius, radius)
+            state.sampler.observe(render, frame)
         avatar.maps.grad = None
         avatar.frame_params.grad = None
         state.iteration = it = it + 1
         state.guard.end_iteration(it)
-        if self.gaussians and it % c.sample_every == 0 and it < c.iterations:
-            self._resample(state, frame)
+        state.sampler.step_end(avatar, frame, it)
         return loss.detach(), render, frame
 
     def run(self, resume: bool = False) -> FitResult:
@@ -362,38 +341,9 @@ class Trainer:
             "config": asdict(self.config),
             "maps_opt": state.maps_opt.state_dict(),
             "frames_opt": state.frames_opt.state_dict(),
-            "accumulator": state.accumulator.state(),
-            "max_radius": state.max_radius,
+            **state.sampler.state(),
             "guard": state.guard.state(),
         }
-
-    def _resample(self, state: FitState, frame) -> None:
-        """Prunes faint or oversized Gaussians, then adds new ones where the UV error is
-        (or uniformly), within the per-round cap and the budget."""
-        c = self.config
-        avatar = state.avatar
-        with torch.no_grad():
-            at_gaussians = texture(avatar.maps, avatar.gaussian_uv)
-            opacity = torch.sigmoid(at_gaussians[:, avatar.layout.opacity])
-        side = max(frame.camera.width, frame.camera.height)
-        keep = (opacity >= c.prune_opacity) & (state.max_radius <= c.prune_screen_fraction * side)
-        uv = avatar.gaussian_uv[keep].numpy()
-        rng = np.random.default_rng([c.seed, 2, state.iteration])
-        room = max(min(c.sample_cap, c.max_gaussians - len(uv)), 0)
-        if self.adaptive:
-            new = state.accumulator.sample(room, state.surface, rng)
-            state.accumulator.reset()
-        else:
-            new = state.surface.uniform(room, rng)
-        set_gaussians(avatar, state.surface, np.concatenate([uv, new]))
-        state.max_radius = torch.zeros(avatar.num_gaussians, dtype=torch.int32)
-        log.debug(
-            "iteration %d: pruned %d, added %d → %d",
-            state.iteration,
-            int((~keep).sum()),
-            len(new),
-            avatar.num_gaussians,
-        )
 
     def _finish(self, avatar: Avatar, seconds: float, history: list, events: list) -> FitResult:
         c = self.config
@@ -454,11 +404,8 @@ class Trainer:
             "refine_steps": c.refine_steps,
             "refine_full_steps": c.refine_full_steps,
             "rejected_steps": [asdict(e) for e in events],
-            "metric_region": "psnr, ssim: inside the foreground mask; *_full: the whole "
-            "image; on the subject's background",
-            "flame_parameters": "psnr*: held-out frames with their tracked FLAME parameters; "
-            "*_refined: after refine_steps Adam steps at <= 256 px, then refine_full_steps "
-            "at full size, on each held-out frame's FLAME row against the frozen avatar",
+            "metric_region": METRIC_REGION,
+            "flame_parameters": FLAME_PARAMETERS,
             "background": avatar.background.tolist(),
         }
         if stlpips_note is not None:

@@ -30,9 +30,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from urhead._atomic import write_directory_atomically
 from urhead._progress import tracked
 from urhead.data.images import write_bgr_png
-from urhead.files import write_directory_atomically
 from urhead.model import Avatar
 from urhead.sh import SH_C0
 from urhead.use.common import (

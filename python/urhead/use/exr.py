@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
+from urhead._atomic import c_library_path
 from urhead.errors import InvalidArgumentError, ShapeError
-from urhead.files import c_library_path
 
 _CHANNEL_NAMES = {1: "Y", 2: "RG", 3: "RGB", 4: "RGBA"}
 

@@ -85,7 +85,7 @@ def mesh_surfels(
         verts, rotations = avatar.skin(params)
         displaced, _ = avatar.displace(verts, rotations)
         metres_per_pixel = _metres_per_pixel(displaced, camera)
-        faces = tables["faces_long"]
+        faces = tables.faces_long
         corners = displaced.double()[faces]  # (F, 3, 3)
         area = 0.5 * _cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]).norm(
             dim=-1
@@ -96,7 +96,7 @@ def mesh_surfels(
         weights = bary[:, :, None]
         centres = (corners[face] * weights).sum(1)
         frames = (rotations[corner_ids] * bary.float()[:, :, None, None]).sum(1)
-        uv_corners = tables["uv_coords"].double()[tables["uv_faces"].long()[face]]
+        uv_corners = tables.uv_coords.double()[tables.uv_faces.long()[face]]
         uv = (uv_corners * weights).sum(1).float().contiguous()
         rows = texture(avatar.maps.detach(), uv)
         samples = avatar.layout.split(rows)

@@ -17,10 +17,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from urhead._atomic import write_directory_atomically
 from urhead._progress import tracked
 from urhead.data.images import write_bgr_png
 from urhead.eval.metrics import frame_params
-from urhead.files import write_directory_atomically
 from urhead.use.common import (
     add_background_option,
     bgr_uint8,

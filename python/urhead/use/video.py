@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from urhead.files import c_library_path, write_file_atomically
+from urhead._atomic import c_library_path, write_file_atomically
 
 H264_CRF = 18
 """x264's constant-rate factor: 18 is visually lossless for these renders."""

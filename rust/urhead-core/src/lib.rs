@@ -15,9 +15,13 @@ pub mod parallel;
 pub mod raster;
 pub mod raytrace;
 pub mod real;
+pub mod sh;
 pub mod shading;
 pub mod splat;
 pub mod ssim;
+/// Deterministic fixtures for tests and benches: `cfg(test)` or the `testing` feature
+/// (which the crate's own integration tests and benches enable), never the binding.
+#[cfg(any(test, feature = "testing"))]
 pub mod testing;
 
 pub use camera::Camera;

@@ -1,5 +1,5 @@
 //! Batched spherical-harmonics colour for many surface samples seen along known view
-//! directions: `rgb = max(Σ_k b_k(dir)·c_k + 0.5, 0)` (3DGS constants, [`crate::splat::sh`]),
+//! directions: `rgb = max(Σ_k b_k(dir)·c_k + 0.5, 0)` (3DGS constants, [`crate::sh`]),
 //! forward and the adjoint to the coefficients. The directions are constants (no gradient):
 //! the mesh branch and the Gaussian lift use fixed camera rays.
 //!
@@ -10,7 +10,7 @@
 use rayon::prelude::*;
 
 use crate::error::{check_finite, check_len, Error, Result};
-use crate::splat::sh::{num_sh_coeffs, sh_basis};
+use crate::sh::{num_sh_coeffs, sh_basis};
 use crate::Real;
 
 /// Samples per rayon task: enough work to amortise the task, fixed so any thread count
@@ -123,7 +123,7 @@ pub fn shade_backward<T: Real>(inputs: &ShadingInputs<'_, T>, v_rgb: &[T]) -> Re
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::splat::sh::{sh_to_rgb, sh_to_rgb_backward};
+    use crate::sh::{sh_to_rgb, sh_to_rgb_backward};
     use crate::testing::Rng;
 
     fn case(count: usize, stride: usize) -> (Vec<f64>, Vec<f64>) {

@@ -110,3 +110,9 @@ pub fn sparse_adam_step<'py>(
     let peaks = array(py, report.peaks, &[channels])?;
     Ok((report.rejected_rows, report.non_finite_rows, peaks))
 }
+
+pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_function(wrap_pyfunction!(sparse_adam_step, m)?)?;
+    m.add_class::<RowJournal>()?;
+    Ok(())
+}

@@ -36,3 +36,32 @@ pub fn array<'py, T: Element>(
 ) -> PyResult<Bound<'py, PyArrayDyn<T>>> {
     data.into_pyarray(py).reshape(dims.to_vec())
 }
+
+/// An optional array argument of element type `T`.
+pub fn optional_array<'py, T: Element>(
+    arr: Option<&Bound<'py, PyAny>>,
+) -> PyResult<Option<PyReadonlyArrayDyn<'py, T>>> {
+    arr.map(|a| a.extract()).transpose()
+}
+
+/// Evaluates `$body` with the type alias `$t` set to the element type of the numpy array
+/// `$first`, float32 or float64: one entry point serves both dtypes (its generic body is
+/// instantiated for each). The other float arguments are extracted as `$t` inside `$body`;
+/// Python has already checked that they share the dtype.
+macro_rules! with_float_type {
+    ($first:ident, $t:ident => $body:expr) => {{
+        if $first.downcast::<numpy::PyArrayDyn<f32>>().is_ok() {
+            type $t = f32;
+            $body
+        } else if $first.downcast::<numpy::PyArrayDyn<f64>>().is_ok() {
+            type $t = f64;
+            $body
+        } else {
+            Err(pyo3::exceptions::PyTypeError::new_err(concat!(
+                stringify!($first),
+                " must be a float32 or float64 array"
+            )))
+        }
+    }};
+}
+pub(crate) use with_float_type;

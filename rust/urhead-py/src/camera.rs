@@ -18,3 +18,8 @@ pub fn camera(args: CameraArgs) -> PyResult<Camera> {
 pub fn check_camera(args: CameraArgs) -> PyResult<()> {
     camera(args).map(|_| ())
 }
+
+pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_function(wrap_pyfunction!(check_camera, m)?)?;
+    Ok(())
+}

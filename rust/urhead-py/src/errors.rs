@@ -3,7 +3,7 @@
 
 use pyo3::create_exception;
 use pyo3::exceptions::{PyMemoryError, PyValueError};
-use pyo3::PyErr;
+use pyo3::prelude::*;
 use urhead_core::Error;
 
 create_exception!(_core, ShapeError, PyValueError, "A tensor has the wrong shape.");
@@ -38,4 +38,15 @@ pub fn py_err(e: Error) -> PyErr {
         Error::TooLarge { .. } => SizeLimitError::new_err(msg),
         Error::OutOfMemory { .. } => PyMemoryError::new_err(msg),
     }
+}
+
+/// The exception types, as `urhead._core.<Name>` (urhead.errors re-exports them).
+pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    let py = m.py();
+    m.add("ShapeError", py.get_type::<ShapeError>())?;
+    m.add("NonFiniteError", py.get_type::<NonFiniteError>())?;
+    m.add("IndexRangeError", py.get_type::<IndexRangeError>())?;
+    m.add("InvalidArgumentError", py.get_type::<InvalidArgumentError>())?;
+    m.add("SizeLimitError", py.get_type::<SizeLimitError>())?;
+    Ok(())
 }

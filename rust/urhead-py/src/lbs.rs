@@ -1,12 +1,13 @@
-//! Binding of `urhead_core::lbs`: float32 and float64 entry points sharing one generic body.
+//! Binding of `urhead_core::lbs`: each entry point serves float32 and float64 through one
+//! generic body.
 
 use numpy::{Element, PyReadonlyArrayDyn};
 use pyo3::prelude::*;
 use pyo3::types::PyTuple;
-use urhead_core::lbs::{lbs_backward, lbs_forward, LbsGradOutputs, LbsInputs, LbsModel, LbsNeeds, LbsSaved};
+use urhead_core::lbs::{self as core, LbsGradOutputs, LbsInputs, LbsModel, LbsNeeds, LbsSaved};
 use urhead_core::Real;
 
-use crate::arrays::{array, data, shape};
+use crate::arrays::{array, data, optional_array, shape, with_float_type};
 use crate::errors::{py_err, ShapeError};
 use crate::pool::with_threads;
 
@@ -83,7 +84,7 @@ fn forward<'py, T: Element + Real>(
     let model = tables.model()?;
     let inputs = inputs(&betas, &pose, transl.as_ref())?;
     let out = py
-        .allow_threads(|| with_threads(num_threads, || lbs_forward(&model, &inputs)))
+        .allow_threads(|| with_threads(num_threads, || core::lbs_forward(&model, &inputs)))
         .map_err(py_err)?;
     let (b, v, j) = (inputs.batch, model.num_verts, model.num_joints);
     PyTuple::new(
@@ -133,7 +134,7 @@ fn backward<'py, T: Element + Real>(
     let g = py
         .allow_threads(|| {
             with_threads(num_threads, || {
-                lbs_backward(&model, &inputs, &saved, &grads_in, &needs)
+                core::lbs_backward(&model, &inputs, &saved, &grads_in, &needs)
             })
         })
         .map_err(py_err)?;
@@ -156,79 +157,82 @@ fn backward<'py, T: Element + Real>(
     )
 }
 
-macro_rules! lbs_entry_points {
-    ($fwd:ident, $bwd:ident, $t:ty) => {
-        /// LBS forward → (verts, joints, rotations, v_shaped, v_posed, rest_joints).
-        #[pyfunction]
-        pub fn $fwd<'py>(
-            py: Python<'py>,
-            betas: Arr<'py, $t>,
-            pose: Arr<'py, $t>,
-            transl: Option<Arr<'py, $t>>,
-            v_template: Arr<'py, $t>,
-            shapedirs: Arr<'py, $t>,
-            posedirs: Arr<'py, $t>,
-            j_regressor: Arr<'py, $t>,
-            parents: Arr<'py, i32>,
-            lbs_weights: Arr<'py, $t>,
-            num_threads: usize,
-        ) -> PyResult<Bound<'py, PyTuple>> {
-            let tables = Tables {
-                v_template,
-                shapedirs,
-                posedirs,
-                j_regressor,
-                parents,
-                lbs_weights,
-            };
-            forward(py, betas, pose, transl, tables, num_threads)
-        }
-
-        /// LBS backward → (v_betas, v_pose, v_transl, v_template, v_shapedirs), None where
-        /// not requested.
-        #[pyfunction]
-        pub fn $bwd<'py>(
-            py: Python<'py>,
-            betas: Arr<'py, $t>,
-            pose: Arr<'py, $t>,
-            transl: Option<Arr<'py, $t>>,
-            v_template: Arr<'py, $t>,
-            shapedirs: Arr<'py, $t>,
-            posedirs: Arr<'py, $t>,
-            j_regressor: Arr<'py, $t>,
-            parents: Arr<'py, i32>,
-            lbs_weights: Arr<'py, $t>,
-            v_shaped: Arr<'py, $t>,
-            v_posed: Arr<'py, $t>,
-            rest_joints: Arr<'py, $t>,
-            v_verts: Option<Arr<'py, $t>>,
-            v_joints: Option<Arr<'py, $t>>,
-            v_rotations: Option<Arr<'py, $t>>,
-            needs: (bool, bool, bool, bool, bool),
-            num_threads: usize,
-        ) -> PyResult<Bound<'py, PyTuple>> {
-            let tables = Tables {
-                v_template,
-                shapedirs,
-                posedirs,
-                j_regressor,
-                parents,
-                lbs_weights,
-            };
-            backward(
-                py,
-                betas,
-                pose,
-                transl,
-                tables,
-                (v_shaped, v_posed, rest_joints),
-                (v_verts, v_joints, v_rotations),
-                needs,
-                num_threads,
-            )
-        }
-    };
+/// LBS forward → (verts, joints, rotations, v_shaped, v_posed, rest_joints).
+#[pyfunction]
+pub fn lbs_forward<'py>(
+    py: Python<'py>,
+    betas: &Bound<'py, PyAny>,
+    pose: &Bound<'py, PyAny>,
+    transl: Option<&Bound<'py, PyAny>>,
+    v_template: &Bound<'py, PyAny>,
+    shapedirs: &Bound<'py, PyAny>,
+    posedirs: &Bound<'py, PyAny>,
+    j_regressor: &Bound<'py, PyAny>,
+    parents: Arr<'py, i32>,
+    lbs_weights: &Bound<'py, PyAny>,
+    num_threads: usize,
+) -> PyResult<Bound<'py, PyTuple>> {
+    with_float_type!(betas, T => {
+        let tables = Tables::<T> {
+            v_template: v_template.extract()?,
+            shapedirs: shapedirs.extract()?,
+            posedirs: posedirs.extract()?,
+            j_regressor: j_regressor.extract()?,
+            parents,
+            lbs_weights: lbs_weights.extract()?,
+        };
+        forward(py, betas.extract()?, pose.extract()?, optional_array(transl)?, tables, num_threads)
+    })
 }
 
-lbs_entry_points!(lbs_forward_f32, lbs_backward_f32, f32);
-lbs_entry_points!(lbs_forward_f64, lbs_backward_f64, f64);
+/// LBS backward → (v_betas, v_pose, v_transl, v_template, v_shapedirs), None where not
+/// requested.
+#[pyfunction]
+pub fn lbs_backward<'py>(
+    py: Python<'py>,
+    betas: &Bound<'py, PyAny>,
+    pose: &Bound<'py, PyAny>,
+    transl: Option<&Bound<'py, PyAny>>,
+    v_template: &Bound<'py, PyAny>,
+    shapedirs: &Bound<'py, PyAny>,
+    posedirs: &Bound<'py, PyAny>,
+    j_regressor: &Bound<'py, PyAny>,
+    parents: Arr<'py, i32>,
+    lbs_weights: &Bound<'py, PyAny>,
+    v_shaped: &Bound<'py, PyAny>,
+    v_posed: &Bound<'py, PyAny>,
+    rest_joints: &Bound<'py, PyAny>,
+    v_verts: Option<&Bound<'py, PyAny>>,
+    v_joints: Option<&Bound<'py, PyAny>>,
+    v_rotations: Option<&Bound<'py, PyAny>>,
+    needs: (bool, bool, bool, bool, bool),
+    num_threads: usize,
+) -> PyResult<Bound<'py, PyTuple>> {
+    with_float_type!(betas, T => {
+        let tables = Tables::<T> {
+            v_template: v_template.extract()?,
+            shapedirs: shapedirs.extract()?,
+            posedirs: posedirs.extract()?,
+            j_regressor: j_regressor.extract()?,
+            parents,
+            lbs_weights: lbs_weights.extract()?,
+        };
+        backward(
+            py,
+            betas.extract()?,
+            pose.extract()?,
+            optional_array(transl)?,
+            tables,
+            (v_shaped.extract()?, v_posed.extract()?, rest_joints.extract()?),
+            (optional_array(v_verts)?, optional_array(v_joints)?, optional_array(v_rotations)?),
+            needs,
+            num_threads,
+        )
+    })
+}
+
+pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_function(wrap_pyfunction!(lbs_forward, m)?)?;
+    m.add_function(wrap_pyfunction!(lbs_backward, m)?)?;
+    Ok(())
+}

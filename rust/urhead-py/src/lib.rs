@@ -1,6 +1,22 @@
-//! `urhead._core`: the thin binding of urhead-core. Each entry point validates its
-//! arguments, releases the GIL, runs the core kernel on a pool of the requested size and
-//! wraps the outputs as numpy arrays (zero-copy both ways). No math lives here.
+//! `urhead._core`: the thin binding of urhead-core. Each module registers its entry points
+//! (`register`); an entry point converts its arguments, releases the GIL, runs the core
+//! kernel on a pool of the requested size and wraps the outputs as numpy arrays (zero-copy
+//! both ways). No math lives here. Python reaches this module only through
+//! `urhead.ops._bridge`.
+//!
+//! Validation policy (the one statement of it; the other layers point here). Every check
+//! lives in the lowest layer that can see what it checks, and runs before any work:
+//! - the core (`urhead_core::error`) checks everything expressible on slices and sizes:
+//!   lengths, agreement between arguments, index ranges, finiteness, size limits. It is
+//!   the source of truth, and what `cargo test` exercises;
+//! - this binding checks only what is lost when an array becomes a slice: the number of
+//!   dimensions, and the sizes it then passes to the core;
+//! - Python (`urhead.ops`) checks only what the binding cannot see: that an argument is a
+//!   dense CPU torch tensor of the right dtype, contiguous, and differentiated only where
+//!   the op allows; and shapes it needs itself before the call (to reshape or allocate).
+//!
+//! Each failure is a typed error naming the argument (`errors.rs` maps core errors to the
+//! `urhead.errors` exceptions).
 
 mod adam;
 mod arrays;
@@ -19,36 +35,14 @@ use pyo3::prelude::*;
 
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
-    let py = m.py();
-    m.add("ShapeError", py.get_type::<errors::ShapeError>())?;
-    m.add("NonFiniteError", py.get_type::<errors::NonFiniteError>())?;
-    m.add("IndexRangeError", py.get_type::<errors::IndexRangeError>())?;
-    m.add(
-        "InvalidArgumentError",
-        py.get_type::<errors::InvalidArgumentError>(),
-    )?;
-    m.add("SizeLimitError", py.get_type::<errors::SizeLimitError>())?;
-    m.add_function(wrap_pyfunction!(camera::check_camera, m)?)?;
-    m.add_function(wrap_pyfunction!(adam::sparse_adam_step, m)?)?;
-    m.add_class::<adam::RowJournal>()?;
-    m.add_function(wrap_pyfunction!(lbs::lbs_forward_f32, m)?)?;
-    m.add_function(wrap_pyfunction!(lbs::lbs_backward_f32, m)?)?;
-    m.add_function(wrap_pyfunction!(lbs::lbs_forward_f64, m)?)?;
-    m.add_function(wrap_pyfunction!(lbs::lbs_backward_f64, m)?)?;
-    m.add_function(wrap_pyfunction!(memory::huge_page_zeros_f32, m)?)?;
-    m.add_function(wrap_pyfunction!(memory::huge_page_zeros_i32, m)?)?;
+    errors::register(m)?;
+    camera::register(m)?;
+    adam::register(m)?;
+    lbs::register(m)?;
+    memory::register(m)?;
     raster::register(m)?;
-    m.add_class::<splat::SplatState>()?;
-    m.add_function(wrap_pyfunction!(splat::splat_project_forward_f32, m)?)?;
-    m.add_function(wrap_pyfunction!(splat::splat_project_backward_f32, m)?)?;
-    m.add_function(wrap_pyfunction!(splat::splat_rasterize_forward_f32, m)?)?;
-    m.add_function(wrap_pyfunction!(splat::splat_rasterize_backward_f32, m)?)?;
-    m.add_function(wrap_pyfunction!(splat::splat_project_forward_f64, m)?)?;
-    m.add_function(wrap_pyfunction!(splat::splat_project_backward_f64, m)?)?;
-    m.add_function(wrap_pyfunction!(splat::splat_rasterize_forward_f64, m)?)?;
-    m.add_function(wrap_pyfunction!(splat::splat_rasterize_backward_f64, m)?)?;
-    m.add_function(wrap_pyfunction!(raytrace::raytrace_render, m)?)?;
-    m.add_class::<raytrace::PyTriangleBvh>()?;
+    splat::register(m)?;
+    raytrace::register(m)?;
     shading::register(m)?;
     ssim::register(m)?;
     Ok(())

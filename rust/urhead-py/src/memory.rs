@@ -24,3 +24,9 @@ pub fn huge_page_zeros_i32(py: Python<'_>, len: usize) -> PyResult<Bound<'_, PyA
         .map_err(py_err)?
         .into_pyarray(py))
 }
+
+pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_function(wrap_pyfunction!(huge_page_zeros_f32, m)?)?;
+    m.add_function(wrap_pyfunction!(huge_page_zeros_i32, m)?)?;
+    Ok(())
+}

@@ -1,5 +1,5 @@
-//! Binding of `urhead_core::raster`: float32 and float64 entry points sharing generic
-//! bodies. Each validates shapes, releases the GIL and runs the core on the requested pool.
+//! Binding of `urhead_core::raster`: each entry point serves float32 and float64 through a
+//! generic body, which validates shapes, releases the GIL and runs the core on the pool.
 
 use numpy::{Element, PyReadonlyArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
@@ -7,7 +7,7 @@ use pyo3::types::PyTuple;
 use urhead_core::raster::{self, AntialiasInputs};
 use urhead_core::Real;
 
-use crate::arrays::{array, data, shape};
+use crate::arrays::{array, data, shape, with_float_type};
 use crate::camera::{camera, CameraArgs};
 use crate::errors::{py_err, ShapeError};
 use crate::pool::with_threads;
@@ -49,7 +49,7 @@ fn optional<'py, T: Element>(py: Python<'py>, x: Option<Vec<T>>, dims: &[usize])
     })
 }
 
-fn rasterize_forward<'py, T: Element + Real>(
+fn rasterize_forward_typed<'py, T: Element + Real>(
     py: Python<'py>,
     verts: Arr<'py, T>,
     faces: Arr<'py, i32>,
@@ -74,7 +74,7 @@ fn rasterize_forward<'py, T: Element + Real>(
     )
 }
 
-fn rasterize_backward<'py, T: Element + Real>(
+fn rasterize_backward_typed<'py, T: Element + Real>(
     py: Python<'py>,
     verts: Arr<'py, T>,
     faces: Arr<'py, i32>,
@@ -100,7 +100,7 @@ fn rasterize_backward<'py, T: Element + Real>(
     array(py, out, &[nv, 3])
 }
 
-fn interpolate_forward<'py, T: Element + Real>(
+fn interpolate_forward_typed<'py, T: Element + Real>(
     py: Python<'py>,
     attr: Arr<'py, T>,
     faces: Arr<'py, i32>,
@@ -125,7 +125,7 @@ fn interpolate_forward<'py, T: Element + Real>(
 }
 
 #[allow(clippy::type_complexity)]
-fn interpolate_backward<'py, T: Element + Real>(
+fn interpolate_backward_typed<'py, T: Element + Real>(
     py: Python<'py>,
     attr: Arr<'py, T>,
     faces: Arr<'py, i32>,
@@ -163,7 +163,7 @@ fn interpolate_backward<'py, T: Element + Real>(
     )
 }
 
-fn texture_forward<'py, T: Element + Real>(
+fn texture_forward_typed<'py, T: Element + Real>(
     py: Python<'py>,
     tex: Arr<'py, T>,
     uv: Arr<'py, T>,
@@ -178,7 +178,7 @@ fn texture_forward<'py, T: Element + Real>(
     array(py, out, &[n, s[2]])
 }
 
-fn texture_backward<'py, T: Element + Real>(
+fn texture_backward_typed<'py, T: Element + Real>(
     py: Python<'py>,
     tex: Arr<'py, T>,
     uv: Arr<'py, T>,
@@ -247,7 +247,7 @@ impl<T: Element + Real> AntialiasArrays<'_, T> {
     }
 }
 
-fn antialias_forward<'py, T: Element + Real>(
+fn antialias_forward_typed<'py, T: Element + Real>(
     py: Python<'py>,
     arrays: AntialiasArrays<'py, T>,
     camera_args: CameraArgs,
@@ -261,7 +261,7 @@ fn antialias_forward<'py, T: Element + Real>(
     array(py, out, &s)
 }
 
-fn antialias_backward<'py, T: Element + Real>(
+fn antialias_backward_typed<'py, T: Element + Real>(
     py: Python<'py>,
     arrays: AntialiasArrays<'py, T>,
     camera_args: CameraArgs,
@@ -290,7 +290,7 @@ fn antialias_backward<'py, T: Element + Real>(
     )
 }
 
-fn rasterize_uv<'py, T: Element + Real>(
+fn rasterize_uv_typed<'py, T: Element + Real>(
     py: Python<'py>,
     uv_coords: Arr<'py, T>,
     uv_faces: Arr<'py, i32>,
@@ -328,197 +328,203 @@ pub fn edge_topology<'py>(
     array(py, out, &[nf, 3])
 }
 
-macro_rules! raster_entry_points {
-    ($t:ty, $rf:ident, $rb:ident, $if_:ident, $ib:ident, $tf:ident, $tb:ident, $af:ident, $ab:ident, $uv:ident) => {
-        /// rasterize → (tri_id (H, W) int32, bary (H, W, 2), depth (H, W)).
-        #[pyfunction]
-        pub fn $rf<'py>(
-            py: Python<'py>,
-            verts: Arr<'py, $t>,
-            faces: Arr<'py, i32>,
-            camera: CameraArgs,
-            num_threads: usize,
-        ) -> PyResult<Bound<'py, PyTuple>> {
-            rasterize_forward(py, verts, faces, camera, num_threads)
-        }
-
-        /// rasterize backward → v_verts (V, 3).
-        #[pyfunction]
-        pub fn $rb<'py>(
-            py: Python<'py>,
-            verts: Arr<'py, $t>,
-            faces: Arr<'py, i32>,
-            camera: CameraArgs,
-            tri_id: Arr<'py, i32>,
-            v_bary: Arr<'py, $t>,
-            num_threads: usize,
-        ) -> PyResult<Bound<'py, numpy::PyArrayDyn<$t>>> {
-            rasterize_backward(py, verts, faces, camera, tri_id, v_bary, num_threads)
-        }
-
-        /// interpolate → (H, W, C).
-        #[pyfunction]
-        pub fn $if_<'py>(
-            py: Python<'py>,
-            attr: Arr<'py, $t>,
-            faces: Arr<'py, i32>,
-            tri_id: Arr<'py, i32>,
-            bary: Arr<'py, $t>,
-            num_threads: usize,
-        ) -> PyResult<Bound<'py, numpy::PyArrayDyn<$t>>> {
-            interpolate_forward(py, attr, faces, tri_id, bary, num_threads)
-        }
-
-        /// interpolate backward → (v_attr, v_bary), None where not requested.
-        #[pyfunction]
-        pub fn $ib<'py>(
-            py: Python<'py>,
-            attr: Arr<'py, $t>,
-            faces: Arr<'py, i32>,
-            tri_id: Arr<'py, i32>,
-            bary: Arr<'py, $t>,
-            v_out: Arr<'py, $t>,
-            needs: (bool, bool),
-            num_threads: usize,
-        ) -> PyResult<Bound<'py, PyTuple>> {
-            interpolate_backward(py, attr, faces, tri_id, bary, v_out, needs, num_threads)
-        }
-
-        /// texture → (N, C).
-        #[pyfunction]
-        pub fn $tf<'py>(
-            py: Python<'py>,
-            tex: Arr<'py, $t>,
-            uv: Arr<'py, $t>,
-            num_threads: usize,
-        ) -> PyResult<Bound<'py, numpy::PyArrayDyn<$t>>> {
-            texture_forward(py, tex, uv, num_threads)
-        }
-
-        /// texture backward → (indices (2, K) int64, values (K, C), v_uv (N, 2)), None
-        /// where not requested.
-        #[pyfunction]
-        pub fn $tb<'py>(
-            py: Python<'py>,
-            tex: Arr<'py, $t>,
-            uv: Arr<'py, $t>,
-            v_out: Arr<'py, $t>,
-            needs: (bool, bool),
-            num_threads: usize,
-        ) -> PyResult<Bound<'py, PyTuple>> {
-            texture_backward(py, tex, uv, v_out, needs, num_threads)
-        }
-
-        /// antialias → (H, W, C).
-        #[pyfunction]
-        pub fn $af<'py>(
-            py: Python<'py>,
-            color: Arr<'py, $t>,
-            tri_id: Arr<'py, i32>,
-            depth: Arr<'py, $t>,
-            verts: Arr<'py, $t>,
-            faces: Arr<'py, i32>,
-            topology: Arr<'py, i32>,
-            camera: CameraArgs,
-            num_threads: usize,
-        ) -> PyResult<Bound<'py, numpy::PyArrayDyn<$t>>> {
-            let arrays = AntialiasArrays {
-                color,
-                tri_id,
-                depth,
-                verts,
-                faces,
-                topology,
-            };
-            antialias_forward(py, arrays, camera, num_threads)
-        }
-
-        /// antialias backward → (v_color, v_verts), None where not requested.
-        #[pyfunction]
-        pub fn $ab<'py>(
-            py: Python<'py>,
-            color: Arr<'py, $t>,
-            tri_id: Arr<'py, i32>,
-            depth: Arr<'py, $t>,
-            verts: Arr<'py, $t>,
-            faces: Arr<'py, i32>,
-            topology: Arr<'py, i32>,
-            camera: CameraArgs,
-            v_out: Arr<'py, $t>,
-            needs: (bool, bool),
-            num_threads: usize,
-        ) -> PyResult<Bound<'py, PyTuple>> {
-            let arrays = AntialiasArrays {
-                color,
-                tri_id,
-                depth,
-                verts,
-                faces,
-                topology,
-            };
-            antialias_backward(py, arrays, camera, v_out, needs, num_threads)
-        }
-
-        /// rasterize_uv → (tri_id (H, W) int32, bary (H, W, 2)).
-        #[pyfunction]
-        pub fn $uv<'py>(
-            py: Python<'py>,
-            uv_coords: Arr<'py, $t>,
-            uv_faces: Arr<'py, i32>,
-            height: usize,
-            width: usize,
-            num_threads: usize,
-        ) -> PyResult<Bound<'py, PyTuple>> {
-            rasterize_uv(py, uv_coords, uv_faces, height, width, num_threads)
-        }
-    };
+/// rasterize → (tri_id (H, W) int32, bary (H, W, 2), depth (H, W)).
+#[pyfunction]
+pub fn rasterize_forward<'py>(
+    py: Python<'py>,
+    verts: &Bound<'py, PyAny>,
+    faces: Arr<'py, i32>,
+    camera: CameraArgs,
+    num_threads: usize,
+) -> PyResult<Bound<'py, PyTuple>> {
+    with_float_type!(verts, T => rasterize_forward_typed::<T>(py, verts.extract()?, faces, camera, num_threads))
 }
 
-raster_entry_points!(
-    f32,
-    rasterize_forward_f32,
-    rasterize_backward_f32,
-    interpolate_forward_f32,
-    interpolate_backward_f32,
-    texture_forward_f32,
-    texture_backward_f32,
-    antialias_forward_f32,
-    antialias_backward_f32,
-    rasterize_uv_f32
-);
-raster_entry_points!(
-    f64,
-    rasterize_forward_f64,
-    rasterize_backward_f64,
-    interpolate_forward_f64,
-    interpolate_backward_f64,
-    texture_forward_f64,
-    texture_backward_f64,
-    antialias_forward_f64,
-    antialias_backward_f64,
-    rasterize_uv_f64
-);
+/// rasterize backward → v_verts (V, 3).
+#[pyfunction]
+pub fn rasterize_backward<'py>(
+    py: Python<'py>,
+    verts: &Bound<'py, PyAny>,
+    faces: Arr<'py, i32>,
+    camera: CameraArgs,
+    tri_id: Arr<'py, i32>,
+    v_bary: &Bound<'py, PyAny>,
+    num_threads: usize,
+) -> PyResult<Bound<'py, PyAny>> {
+    with_float_type!(verts, T => rasterize_backward_typed::<T>(
+        py,
+        verts.extract()?,
+        faces,
+        camera,
+        tri_id,
+        v_bary.extract()?,
+        num_threads,
+    )
+    .map(Bound::into_any))
+}
 
-/// Registers the raster entry points on the extension module.
+/// interpolate → (H, W, C).
+#[pyfunction]
+pub fn interpolate_forward<'py>(
+    py: Python<'py>,
+    attr: &Bound<'py, PyAny>,
+    faces: Arr<'py, i32>,
+    tri_id: Arr<'py, i32>,
+    bary: &Bound<'py, PyAny>,
+    num_threads: usize,
+) -> PyResult<Bound<'py, PyAny>> {
+    with_float_type!(attr, T => interpolate_forward_typed::<T>(
+        py,
+        attr.extract()?,
+        faces,
+        tri_id,
+        bary.extract()?,
+        num_threads,
+    )
+    .map(Bound::into_any))
+}
+
+/// interpolate backward → (v_attr, v_bary), None where not requested.
+#[pyfunction]
+pub fn interpolate_backward<'py>(
+    py: Python<'py>,
+    attr: &Bound<'py, PyAny>,
+    faces: Arr<'py, i32>,
+    tri_id: Arr<'py, i32>,
+    bary: &Bound<'py, PyAny>,
+    v_out: &Bound<'py, PyAny>,
+    needs: (bool, bool),
+    num_threads: usize,
+) -> PyResult<Bound<'py, PyTuple>> {
+    with_float_type!(attr, T => interpolate_backward_typed::<T>(
+        py,
+        attr.extract()?,
+        faces,
+        tri_id,
+        bary.extract()?,
+        v_out.extract()?,
+        needs,
+        num_threads,
+    ))
+}
+
+/// texture → (N, C).
+#[pyfunction]
+pub fn texture_forward<'py>(
+    py: Python<'py>,
+    tex: &Bound<'py, PyAny>,
+    uv: &Bound<'py, PyAny>,
+    num_threads: usize,
+) -> PyResult<Bound<'py, PyAny>> {
+    with_float_type!(tex, T => texture_forward_typed::<T>(py, tex.extract()?, uv.extract()?, num_threads)
+        .map(Bound::into_any))
+}
+
+/// texture backward → (indices (2, K) int64, values (K, C), v_uv (N, 2)), None where not
+/// requested.
+#[pyfunction]
+pub fn texture_backward<'py>(
+    py: Python<'py>,
+    tex: &Bound<'py, PyAny>,
+    uv: &Bound<'py, PyAny>,
+    v_out: &Bound<'py, PyAny>,
+    needs: (bool, bool),
+    num_threads: usize,
+) -> PyResult<Bound<'py, PyTuple>> {
+    with_float_type!(tex, T => texture_backward_typed::<T>(
+        py,
+        tex.extract()?,
+        uv.extract()?,
+        v_out.extract()?,
+        needs,
+        num_threads,
+    ))
+}
+
+/// antialias → (H, W, C).
+#[pyfunction]
+pub fn antialias_forward<'py>(
+    py: Python<'py>,
+    color: &Bound<'py, PyAny>,
+    tri_id: Arr<'py, i32>,
+    depth: &Bound<'py, PyAny>,
+    verts: &Bound<'py, PyAny>,
+    faces: Arr<'py, i32>,
+    topology: Arr<'py, i32>,
+    camera: CameraArgs,
+    num_threads: usize,
+) -> PyResult<Bound<'py, PyAny>> {
+    with_float_type!(color, T => {
+        let arrays = AntialiasArrays::<T> {
+            color: color.extract()?,
+            tri_id,
+            depth: depth.extract()?,
+            verts: verts.extract()?,
+            faces,
+            topology,
+        };
+        antialias_forward_typed(py, arrays, camera, num_threads).map(Bound::into_any)
+    })
+}
+
+/// antialias backward → (v_color, v_verts), None where not requested.
+#[pyfunction]
+pub fn antialias_backward<'py>(
+    py: Python<'py>,
+    color: &Bound<'py, PyAny>,
+    tri_id: Arr<'py, i32>,
+    depth: &Bound<'py, PyAny>,
+    verts: &Bound<'py, PyAny>,
+    faces: Arr<'py, i32>,
+    topology: Arr<'py, i32>,
+    camera: CameraArgs,
+    v_out: &Bound<'py, PyAny>,
+    needs: (bool, bool),
+    num_threads: usize,
+) -> PyResult<Bound<'py, PyTuple>> {
+    with_float_type!(color, T => {
+        let arrays = AntialiasArrays::<T> {
+            color: color.extract()?,
+            tri_id,
+            depth: depth.extract()?,
+            verts: verts.extract()?,
+            faces,
+            topology,
+        };
+        antialias_backward_typed(py, arrays, camera, v_out.extract()?, needs, num_threads)
+    })
+}
+
+/// rasterize_uv → (tri_id (H, W) int32, bary (H, W, 2)).
+#[pyfunction]
+pub fn rasterize_uv<'py>(
+    py: Python<'py>,
+    uv_coords: &Bound<'py, PyAny>,
+    uv_faces: Arr<'py, i32>,
+    height: usize,
+    width: usize,
+    num_threads: usize,
+) -> PyResult<Bound<'py, PyTuple>> {
+    with_float_type!(uv_coords, T => rasterize_uv_typed::<T>(
+        py,
+        uv_coords.extract()?,
+        uv_faces,
+        height,
+        width,
+        num_threads,
+    ))
+}
+
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(edge_topology, m)?)?;
-    m.add_function(wrap_pyfunction!(rasterize_forward_f32, m)?)?;
-    m.add_function(wrap_pyfunction!(rasterize_backward_f32, m)?)?;
-    m.add_function(wrap_pyfunction!(interpolate_forward_f32, m)?)?;
-    m.add_function(wrap_pyfunction!(interpolate_backward_f32, m)?)?;
-    m.add_function(wrap_pyfunction!(texture_forward_f32, m)?)?;
-    m.add_function(wrap_pyfunction!(texture_backward_f32, m)?)?;
-    m.add_function(wrap_pyfunction!(antialias_forward_f32, m)?)?;
-    m.add_function(wrap_pyfunction!(antialias_backward_f32, m)?)?;
-    m.add_function(wrap_pyfunction!(rasterize_uv_f32, m)?)?;
-    m.add_function(wrap_pyfunction!(rasterize_forward_f64, m)?)?;
-    m.add_function(wrap_pyfunction!(rasterize_backward_f64, m)?)?;
-    m.add_function(wrap_pyfunction!(interpolate_forward_f64, m)?)?;
-    m.add_function(wrap_pyfunction!(interpolate_backward_f64, m)?)?;
-    m.add_function(wrap_pyfunction!(texture_forward_f64, m)?)?;
-    m.add_function(wrap_pyfunction!(texture_backward_f64, m)?)?;
-    m.add_function(wrap_pyfunction!(antialias_forward_f64, m)?)?;
-    m.add_function(wrap_pyfunction!(antialias_backward_f64, m)?)?;
-    m.add_function(wrap_pyfunction!(rasterize_uv_f64, m)?)?;
+    m.add_function(wrap_pyfunction!(rasterize_forward, m)?)?;
+    m.add_function(wrap_pyfunction!(rasterize_backward, m)?)?;
+    m.add_function(wrap_pyfunction!(interpolate_forward, m)?)?;
+    m.add_function(wrap_pyfunction!(interpolate_backward, m)?)?;
+    m.add_function(wrap_pyfunction!(texture_forward, m)?)?;
+    m.add_function(wrap_pyfunction!(texture_backward, m)?)?;
+    m.add_function(wrap_pyfunction!(antialias_forward, m)?)?;
+    m.add_function(wrap_pyfunction!(antialias_backward, m)?)?;
+    m.add_function(wrap_pyfunction!(rasterize_uv, m)?)?;
     Ok(())
 }

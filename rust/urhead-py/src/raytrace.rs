@@ -171,3 +171,9 @@ pub fn raytrace_render<'py>(
     }
     PyTuple::new(py, outputs)
 }
+
+pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_function(wrap_pyfunction!(raytrace_render, m)?)?;
+    m.add_class::<PyTriangleBvh>()?;
+    Ok(())
+}

@@ -1,12 +1,12 @@
 //! Binding of `urhead_core::shading`: batched SH colour of (P, stride) coefficient rows
-//! along (P, 3) view directions, forward and adjoint, float32 and float64.
+//! along (P, 3) view directions, forward and adjoint, each entry point serving float32 and float64.
 
-use numpy::{Element, PyArrayDyn, PyReadonlyArrayDyn};
+use numpy::{Element, PyReadonlyArrayDyn};
 use pyo3::prelude::*;
 use urhead_core::shading::{shade_backward, shade_forward, ShadingInputs};
 use urhead_core::Real;
 
-use crate::arrays::{array, data, shape};
+use crate::arrays::{array, data, shape, with_float_type};
 use crate::errors::{py_err, ShapeError};
 use crate::pool::with_threads;
 
@@ -40,12 +40,12 @@ fn forward<'py, T: Element + Real>(
     dirs: Arr<'py, T>,
     degree: usize,
     num_threads: usize,
-) -> PyResult<Bound<'py, PyArrayDyn<T>>> {
+) -> PyResult<Bound<'py, PyAny>> {
     let (inputs, count) = inputs(&coeffs, &dirs, degree)?;
     let rgb = py
         .allow_threads(|| with_threads(num_threads, || shade_forward(&inputs)))
         .map_err(py_err)?;
-    array(py, rgb, &[count, 3])
+    Ok(array(py, rgb, &[count, 3])?.into_any())
 }
 
 fn backward<'py, T: Element + Real>(
@@ -55,52 +55,56 @@ fn backward<'py, T: Element + Real>(
     degree: usize,
     v_rgb: Arr<'py, T>,
     num_threads: usize,
-) -> PyResult<Bound<'py, PyArrayDyn<T>>> {
+) -> PyResult<Bound<'py, PyAny>> {
     let (inputs, count) = inputs(&coeffs, &dirs, degree)?;
     let v = data(&v_rgb, "v_rgb")?;
     let grad = py
         .allow_threads(|| with_threads(num_threads, || shade_backward(&inputs, v)))
         .map_err(py_err)?;
-    array(py, grad, &[count, inputs.stride])
+    Ok(array(py, grad, &[count, inputs.stride])?.into_any())
 }
 
-macro_rules! entry_points {
-    ($fwd:ident, $bwd:ident, $t:ty) => {
-        /// (P, 3) colours of (P, stride) SH coefficient rows seen along (P, 3) directions.
-        #[pyfunction]
-        pub fn $fwd<'py>(
-            py: Python<'py>,
-            coeffs: Arr<'py, $t>,
-            dirs: Arr<'py, $t>,
-            degree: usize,
-            num_threads: usize,
-        ) -> PyResult<Bound<'py, PyArrayDyn<$t>>> {
-            forward(py, coeffs, dirs, degree, num_threads)
-        }
-
-        /// (P, stride) gradient of the coefficient rows from the (P, 3) colour gradient.
-        #[pyfunction]
-        pub fn $bwd<'py>(
-            py: Python<'py>,
-            coeffs: Arr<'py, $t>,
-            dirs: Arr<'py, $t>,
-            degree: usize,
-            v_rgb: Arr<'py, $t>,
-            num_threads: usize,
-        ) -> PyResult<Bound<'py, PyArrayDyn<$t>>> {
-            backward(py, coeffs, dirs, degree, v_rgb, num_threads)
-        }
-    };
+/// (P, 3) colours of (P, stride) SH coefficient rows seen along (P, 3) directions.
+#[pyfunction]
+pub fn sh_shade_forward<'py>(
+    py: Python<'py>,
+    coeffs: &Bound<'py, PyAny>,
+    dirs: &Bound<'py, PyAny>,
+    degree: usize,
+    num_threads: usize,
+) -> PyResult<Bound<'py, PyAny>> {
+    with_float_type!(coeffs, T => forward::<T>(
+        py,
+        coeffs.extract()?,
+        dirs.extract()?,
+        degree,
+        num_threads,
+    ))
 }
 
-entry_points!(sh_shade_forward_f32, sh_shade_backward_f32, f32);
-entry_points!(sh_shade_forward_f64, sh_shade_backward_f64, f64);
+/// (P, stride) gradient of the coefficient rows from the (P, 3) colour gradient.
+#[pyfunction]
+pub fn sh_shade_backward<'py>(
+    py: Python<'py>,
+    coeffs: &Bound<'py, PyAny>,
+    dirs: &Bound<'py, PyAny>,
+    degree: usize,
+    v_rgb: &Bound<'py, PyAny>,
+    num_threads: usize,
+) -> PyResult<Bound<'py, PyAny>> {
+    with_float_type!(coeffs, T => backward::<T>(
+        py,
+        coeffs.extract()?,
+        dirs.extract()?,
+        degree,
+        v_rgb.extract()?,
+        num_threads,
+    ))
+}
 
 /// Adds the entry points to `_core`.
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
-    m.add_function(wrap_pyfunction!(sh_shade_forward_f32, m)?)?;
-    m.add_function(wrap_pyfunction!(sh_shade_backward_f32, m)?)?;
-    m.add_function(wrap_pyfunction!(sh_shade_forward_f64, m)?)?;
-    m.add_function(wrap_pyfunction!(sh_shade_backward_f64, m)?)?;
+    m.add_function(wrap_pyfunction!(sh_shade_forward, m)?)?;
+    m.add_function(wrap_pyfunction!(sh_shade_backward, m)?)?;
     Ok(())
 }

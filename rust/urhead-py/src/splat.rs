@@ -1,5 +1,5 @@
-//! Binding of `urhead_core::splat`: projection and rasterization, float32 and float64 entry
-//! points sharing one generic body each. What the rasterizer's backward needs from its
+//! Binding of `urhead_core::splat`: projection and rasterization, each entry point serving
+//! float32 and float64 through one generic body. What the rasterizer's backward needs from its
 //! forward crosses back to Python as an opaque `SplatState` object.
 
 use numpy::{Element, PyReadonlyArrayDyn};
@@ -10,7 +10,7 @@ use urhead_core::splat::{
     ProjectInputs, ProjectNeeds, RasterInputs, ShCoeffs, SplatReal,
 };
 
-use crate::arrays::{array, data, shape};
+use crate::arrays::{array, data, optional_array, shape, with_float_type};
 use crate::camera::{camera, CameraArgs};
 use crate::errors::{py_err, ShapeError};
 use crate::pool::with_threads;
@@ -125,184 +125,323 @@ fn raster_inputs<'a, T: Element + SplatReal>(
     })
 }
 
-macro_rules! splat_entry_points {
-    ($pf:ident, $pb:ident, $rf:ident, $rb:ident, $t:ty) => {
-        /// Projection → (means2d, conics, depths, radii, colors or None).
-        #[pyfunction]
-        #[pyo3(signature = (means, quats, scales, opacities, sh, sh_degree, camera_args, num_threads))]
-        pub fn $pf<'py>(
-            py: Python<'py>,
-            means: Arr<'py, $t>,
-            quats: Arr<'py, $t>,
-            scales: Arr<'py, $t>,
-            opacities: Arr<'py, $t>,
-            sh: Option<Arr<'py, $t>>,
-            sh_degree: usize,
-            camera_args: CameraArgs,
-            num_threads: usize,
-        ) -> PyResult<Bound<'py, PyTuple>> {
-            let cam = camera(camera_args)?;
-            let inputs = project_inputs(&means, &quats, &scales, &opacities, sh.as_ref(), sh_degree)?;
-            let out = py
-                .allow_threads(|| with_threads(num_threads, || project_forward(&cam, &inputs)))
-                .map_err(py_err)?;
-            let n = inputs.num_gaussians;
-            let colors = out.colors.map(|c| array(py, c, &[n, 3])).transpose()?;
-            PyTuple::new(
-                py,
-                [
-                    array(py, out.means2d, &[n, 2])?.into_any().unbind(),
-                    array(py, out.conics, &[n, 3])?.into_any().unbind(),
-                    array(py, out.depths, &[n])?.into_any().unbind(),
-                    array(py, out.radii, &[n, 2])?.into_any().unbind(),
-                    none_or(py, colors.map(|c| c.into_any())),
-                ],
-            )
-        }
-
-        /// Projection backward → (v_means, v_quats, v_scales, v_sh), None where not needed.
-        #[pyfunction]
-        #[pyo3(signature = (means, quats, scales, opacities, sh, sh_degree, camera_args, v_means2d, v_conics, v_colors, needs, num_threads))]
-        pub fn $pb<'py>(
-            py: Python<'py>,
-            means: Arr<'py, $t>,
-            quats: Arr<'py, $t>,
-            scales: Arr<'py, $t>,
-            opacities: Arr<'py, $t>,
-            sh: Option<Arr<'py, $t>>,
-            sh_degree: usize,
-            camera_args: CameraArgs,
-            v_means2d: Option<Arr<'py, $t>>,
-            v_conics: Option<Arr<'py, $t>>,
-            v_colors: Option<Arr<'py, $t>>,
-            needs: (bool, bool, bool, bool),
-            num_threads: usize,
-        ) -> PyResult<Bound<'py, PyTuple>> {
-            let cam = camera(camera_args)?;
-            let inputs = project_inputs(&means, &quats, &scales, &opacities, sh.as_ref(), sh_degree)?;
-            let grads = ProjectGradOutputs {
-                v_means2d: v_means2d.as_ref().map(|a| data(a, "v_means2d")).transpose()?,
-                v_conics: v_conics.as_ref().map(|a| data(a, "v_conics")).transpose()?,
-                v_colors: v_colors.as_ref().map(|a| data(a, "v_colors")).transpose()?,
-            };
-            let needs = ProjectNeeds {
-                means: needs.0,
-                quats: needs.1,
-                scales: needs.2,
-                sh: needs.3,
-            };
-            let g = py
-                .allow_threads(|| with_threads(num_threads, || project_backward(&cam, &inputs, &grads, &needs)))
-                .map_err(py_err)?;
-            let n = inputs.num_gaussians;
-            let k = inputs.sh.map_or(0, |s| s.num_coeffs);
-            let wrap = |x: Option<Vec<$t>>, dims: &[usize]| -> PyResult<PyObject> {
-                Ok(match x {
-                    Some(x) => array(py, x, dims)?.into_any().unbind(),
-                    None => py.None(),
-                })
-            };
-            PyTuple::new(
-                py,
-                [
-                    wrap(g.v_means, &[n, 3])?,
-                    wrap(g.v_quats, &[n, 4])?,
-                    wrap(g.v_scales, &[n, 3])?,
-                    wrap(g.v_sh, &[n, k, 3])?,
-                ],
-            )
-        }
-
-        /// Rasterization → (image, transmittance, state for the backward, evaluated pairs).
-        #[pyfunction]
-        #[pyo3(signature = (means2d, conics, colors, opacities, depths, radii, background, depth_map, depth_eps, width, height, num_threads))]
-        pub fn $rf<'py>(
-            py: Python<'py>,
-            means2d: Arr<'py, $t>,
-            conics: Arr<'py, $t>,
-            colors: Arr<'py, $t>,
-            opacities: Arr<'py, $t>,
-            depths: Arr<'py, $t>,
-            radii: Arr<'py, i32>,
-            background: Option<Arr<'py, $t>>,
-            depth_map: Option<Arr<'py, $t>>,
-            depth_eps: $t,
-            width: usize,
-            height: usize,
-            num_threads: usize,
-        ) -> PyResult<Bound<'py, PyTuple>> {
-            let arrays = (means2d, conics, colors, opacities, depths, radii);
-            let inputs = raster_inputs(&arrays, background.as_ref(), depth_map.as_ref(), depth_eps, width, height)?;
-            let out = py
-                .allow_threads(|| with_threads(num_threads, || rasterize_forward(&inputs)))
-                .map_err(py_err)?;
-            let state = SplatState { binning: out.binning };
-            let c = inputs.channels;
-            PyTuple::new(
-                py,
-                [
-                    array(py, out.image, &[height, width, c])?.into_any().unbind(),
-                    array(py, out.transmittance, &[height, width])?.into_any().unbind(),
-                    Py::new(py, state)?.into_any(),
-                    out.evaluated_pairs.into_pyobject(py)?.into_any().unbind(),
-                ],
-            )
-        }
-
-        /// Rasterization backward → (v_means2d, v_conics, v_colors, v_opacities).
-        #[pyfunction]
-        #[pyo3(signature = (state, means2d, conics, colors, opacities, depths, radii, background, depth_map, depth_eps, width, height, v_image, v_transmittance, num_threads))]
-        pub fn $rb<'py>(
-            py: Python<'py>,
-            state: PyRef<'py, SplatState>,
-            means2d: Arr<'py, $t>,
-            conics: Arr<'py, $t>,
-            colors: Arr<'py, $t>,
-            opacities: Arr<'py, $t>,
-            depths: Arr<'py, $t>,
-            radii: Arr<'py, i32>,
-            background: Option<Arr<'py, $t>>,
-            depth_map: Option<Arr<'py, $t>>,
-            depth_eps: $t,
-            width: usize,
-            height: usize,
-            v_image: Option<Arr<'py, $t>>,
-            v_transmittance: Option<Arr<'py, $t>>,
-            num_threads: usize,
-        ) -> PyResult<Bound<'py, PyTuple>> {
-            let arrays = (means2d, conics, colors, opacities, depths, radii);
-            let inputs = raster_inputs(&arrays, background.as_ref(), depth_map.as_ref(), depth_eps, width, height)?;
-            let v_image = v_image.as_ref().map(|a| data(a, "v_image")).transpose()?;
-            let v_t = v_transmittance.as_ref().map(|a| data(a, "v_transmittance")).transpose()?;
-            let bins = &state.binning;
-            let g = py
-                .allow_threads(|| with_threads(num_threads, || rasterize_backward(&inputs, bins, v_image, v_t)))
-                .map_err(py_err)?;
-            let (n, c) = (inputs.num_gaussians, inputs.channels);
-            PyTuple::new(
-                py,
-                [
-                    array(py, g.v_means2d, &[n, 2])?,
-                    array(py, g.v_conics, &[n, 3])?,
-                    array(py, g.v_colors, &[n, c])?,
-                    array(py, g.v_opacities, &[n])?,
-                ],
-            )
-        }
-    };
+#[allow(clippy::too_many_arguments)]
+fn project_forward_typed<'py, T: Element + SplatReal>(
+    py: Python<'py>,
+    means: Arr<'py, T>,
+    quats: Arr<'py, T>,
+    scales: Arr<'py, T>,
+    opacities: Arr<'py, T>,
+    sh: Option<Arr<'py, T>>,
+    sh_degree: usize,
+    camera_args: CameraArgs,
+    num_threads: usize,
+) -> PyResult<Bound<'py, PyTuple>> {
+    let cam = camera(camera_args)?;
+    let inputs = project_inputs(&means, &quats, &scales, &opacities, sh.as_ref(), sh_degree)?;
+    let out = py
+        .allow_threads(|| with_threads(num_threads, || project_forward(&cam, &inputs)))
+        .map_err(py_err)?;
+    let n = inputs.num_gaussians;
+    let colors = out.colors.map(|c| array(py, c, &[n, 3])).transpose()?;
+    PyTuple::new(
+        py,
+        [
+            array(py, out.means2d, &[n, 2])?.into_any().unbind(),
+            array(py, out.conics, &[n, 3])?.into_any().unbind(),
+            array(py, out.depths, &[n])?.into_any().unbind(),
+            array(py, out.radii, &[n, 2])?.into_any().unbind(),
+            none_or(py, colors.map(|c| c.into_any())),
+        ],
+    )
 }
 
-splat_entry_points!(
-    splat_project_forward_f32,
-    splat_project_backward_f32,
-    splat_rasterize_forward_f32,
-    splat_rasterize_backward_f32,
-    f32
-);
-splat_entry_points!(
-    splat_project_forward_f64,
-    splat_project_backward_f64,
-    splat_rasterize_forward_f64,
-    splat_rasterize_backward_f64,
-    f64
-);
+#[allow(clippy::too_many_arguments)]
+fn project_backward_typed<'py, T: Element + SplatReal>(
+    py: Python<'py>,
+    means: Arr<'py, T>,
+    quats: Arr<'py, T>,
+    scales: Arr<'py, T>,
+    opacities: Arr<'py, T>,
+    sh: Option<Arr<'py, T>>,
+    sh_degree: usize,
+    camera_args: CameraArgs,
+    v_means2d: Option<Arr<'py, T>>,
+    v_conics: Option<Arr<'py, T>>,
+    v_colors: Option<Arr<'py, T>>,
+    needs: (bool, bool, bool, bool),
+    num_threads: usize,
+) -> PyResult<Bound<'py, PyTuple>> {
+    let cam = camera(camera_args)?;
+    let inputs = project_inputs(&means, &quats, &scales, &opacities, sh.as_ref(), sh_degree)?;
+    let grads = ProjectGradOutputs {
+        v_means2d: v_means2d.as_ref().map(|a| data(a, "v_means2d")).transpose()?,
+        v_conics: v_conics.as_ref().map(|a| data(a, "v_conics")).transpose()?,
+        v_colors: v_colors.as_ref().map(|a| data(a, "v_colors")).transpose()?,
+    };
+    let needs = ProjectNeeds {
+        means: needs.0,
+        quats: needs.1,
+        scales: needs.2,
+        sh: needs.3,
+    };
+    let g = py
+        .allow_threads(|| with_threads(num_threads, || project_backward(&cam, &inputs, &grads, &needs)))
+        .map_err(py_err)?;
+    let n = inputs.num_gaussians;
+    let k = inputs.sh.map_or(0, |s| s.num_coeffs);
+    let wrap = |x: Option<Vec<T>>, dims: &[usize]| -> PyResult<PyObject> {
+        Ok(match x {
+            Some(x) => array(py, x, dims)?.into_any().unbind(),
+            None => py.None(),
+        })
+    };
+    PyTuple::new(
+        py,
+        [
+            wrap(g.v_means, &[n, 3])?,
+            wrap(g.v_quats, &[n, 4])?,
+            wrap(g.v_scales, &[n, 3])?,
+            wrap(g.v_sh, &[n, k, 3])?,
+        ],
+    )
+}
+
+#[allow(clippy::too_many_arguments)]
+fn rasterize_forward_typed<'py, T: Element + SplatReal>(
+    py: Python<'py>,
+    means2d: Arr<'py, T>,
+    conics: Arr<'py, T>,
+    colors: Arr<'py, T>,
+    opacities: Arr<'py, T>,
+    depths: Arr<'py, T>,
+    radii: Arr<'py, i32>,
+    background: Option<Arr<'py, T>>,
+    depth_map: Option<Arr<'py, T>>,
+    depth_eps: T,
+    width: usize,
+    height: usize,
+    num_threads: usize,
+) -> PyResult<Bound<'py, PyTuple>> {
+    let arrays = (means2d, conics, colors, opacities, depths, radii);
+    let inputs = raster_inputs(
+        &arrays,
+        background.as_ref(),
+        depth_map.as_ref(),
+        depth_eps,
+        width,
+        height,
+    )?;
+    let out = py
+        .allow_threads(|| with_threads(num_threads, || rasterize_forward(&inputs)))
+        .map_err(py_err)?;
+    let state = SplatState { binning: out.binning };
+    let c = inputs.channels;
+    PyTuple::new(
+        py,
+        [
+            array(py, out.image, &[height, width, c])?.into_any().unbind(),
+            array(py, out.transmittance, &[height, width])?
+                .into_any()
+                .unbind(),
+            Py::new(py, state)?.into_any(),
+            out.evaluated_pairs.into_pyobject(py)?.into_any().unbind(),
+        ],
+    )
+}
+
+#[allow(clippy::too_many_arguments)]
+fn rasterize_backward_typed<'py, T: Element + SplatReal>(
+    py: Python<'py>,
+    state: PyRef<'py, SplatState>,
+    means2d: Arr<'py, T>,
+    conics: Arr<'py, T>,
+    colors: Arr<'py, T>,
+    opacities: Arr<'py, T>,
+    depths: Arr<'py, T>,
+    radii: Arr<'py, i32>,
+    background: Option<Arr<'py, T>>,
+    depth_map: Option<Arr<'py, T>>,
+    depth_eps: T,
+    width: usize,
+    height: usize,
+    v_image: Option<Arr<'py, T>>,
+    v_transmittance: Option<Arr<'py, T>>,
+    num_threads: usize,
+) -> PyResult<Bound<'py, PyTuple>> {
+    let arrays = (means2d, conics, colors, opacities, depths, radii);
+    let inputs = raster_inputs(
+        &arrays,
+        background.as_ref(),
+        depth_map.as_ref(),
+        depth_eps,
+        width,
+        height,
+    )?;
+    let v_image = v_image.as_ref().map(|a| data(a, "v_image")).transpose()?;
+    let v_t = v_transmittance
+        .as_ref()
+        .map(|a| data(a, "v_transmittance"))
+        .transpose()?;
+    let bins = &state.binning;
+    let g = py
+        .allow_threads(|| with_threads(num_threads, || rasterize_backward(&inputs, bins, v_image, v_t)))
+        .map_err(py_err)?;
+    let (n, c) = (inputs.num_gaussians, inputs.channels);
+    PyTuple::new(
+        py,
+        [
+            array(py, g.v_means2d, &[n, 2])?,
+            array(py, g.v_conics, &[n, 3])?,
+            array(py, g.v_colors, &[n, c])?,
+            array(py, g.v_opacities, &[n])?,
+        ],
+    )
+}
+
+/// Projection → (means2d, conics, depths, radii, colors or None).
+#[pyfunction]
+#[pyo3(signature = (means, quats, scales, opacities, sh, sh_degree, camera_args, num_threads))]
+pub fn splat_project_forward<'py>(
+    py: Python<'py>,
+    means: &Bound<'py, PyAny>,
+    quats: &Bound<'py, PyAny>,
+    scales: &Bound<'py, PyAny>,
+    opacities: &Bound<'py, PyAny>,
+    sh: Option<&Bound<'py, PyAny>>,
+    sh_degree: usize,
+    camera_args: CameraArgs,
+    num_threads: usize,
+) -> PyResult<Bound<'py, PyTuple>> {
+    with_float_type!(means, T => project_forward_typed::<T>(
+        py,
+        means.extract()?,
+        quats.extract()?,
+        scales.extract()?,
+        opacities.extract()?,
+        optional_array(sh)?,
+        sh_degree,
+        camera_args,
+        num_threads,
+    ))
+}
+
+/// Projection backward → (v_means, v_quats, v_scales, v_sh), None where not needed.
+#[pyfunction]
+#[pyo3(signature = (means, quats, scales, opacities, sh, sh_degree, camera_args, v_means2d, v_conics, v_colors, needs, num_threads))]
+pub fn splat_project_backward<'py>(
+    py: Python<'py>,
+    means: &Bound<'py, PyAny>,
+    quats: &Bound<'py, PyAny>,
+    scales: &Bound<'py, PyAny>,
+    opacities: &Bound<'py, PyAny>,
+    sh: Option<&Bound<'py, PyAny>>,
+    sh_degree: usize,
+    camera_args: CameraArgs,
+    v_means2d: Option<&Bound<'py, PyAny>>,
+    v_conics: Option<&Bound<'py, PyAny>>,
+    v_colors: Option<&Bound<'py, PyAny>>,
+    needs: (bool, bool, bool, bool),
+    num_threads: usize,
+) -> PyResult<Bound<'py, PyTuple>> {
+    with_float_type!(means, T => project_backward_typed::<T>(
+        py,
+        means.extract()?,
+        quats.extract()?,
+        scales.extract()?,
+        opacities.extract()?,
+        optional_array(sh)?,
+        sh_degree,
+        camera_args,
+        optional_array(v_means2d)?,
+        optional_array(v_conics)?,
+        optional_array(v_colors)?,
+        needs,
+        num_threads,
+    ))
+}
+
+/// Rasterization → (image, transmittance, state for the backward, evaluated pairs).
+#[pyfunction]
+#[pyo3(signature = (means2d, conics, colors, opacities, depths, radii, background, depth_map, depth_eps, width, height, num_threads))]
+pub fn splat_rasterize_forward<'py>(
+    py: Python<'py>,
+    means2d: &Bound<'py, PyAny>,
+    conics: &Bound<'py, PyAny>,
+    colors: &Bound<'py, PyAny>,
+    opacities: &Bound<'py, PyAny>,
+    depths: &Bound<'py, PyAny>,
+    radii: Arr<'py, i32>,
+    background: Option<&Bound<'py, PyAny>>,
+    depth_map: Option<&Bound<'py, PyAny>>,
+    depth_eps: &Bound<'py, PyAny>,
+    width: usize,
+    height: usize,
+    num_threads: usize,
+) -> PyResult<Bound<'py, PyTuple>> {
+    with_float_type!(means2d, T => rasterize_forward_typed::<T>(
+        py,
+        means2d.extract()?,
+        conics.extract()?,
+        colors.extract()?,
+        opacities.extract()?,
+        depths.extract()?,
+        radii,
+        optional_array(background)?,
+        optional_array(depth_map)?,
+        depth_eps.extract()?,
+        width,
+        height,
+        num_threads,
+    ))
+}
+
+/// Rasterization backward → (v_means2d, v_conics, v_colors, v_opacities).
+#[pyfunction]
+#[pyo3(signature = (state, means2d, conics, colors, opacities, depths, radii, background, depth_map, depth_eps, width, height, v_image, v_transmittance, num_threads))]
+pub fn splat_rasterize_backward<'py>(
+    py: Python<'py>,
+    state: PyRef<'py, SplatState>,
+    means2d: &Bound<'py, PyAny>,
+    conics: &Bound<'py, PyAny>,
+    colors: &Bound<'py, PyAny>,
+    opacities: &Bound<'py, PyAny>,
+    depths: &Bound<'py, PyAny>,
+    radii: Arr<'py, i32>,
+    background: Option<&Bound<'py, PyAny>>,
+    depth_map: Option<&Bound<'py, PyAny>>,
+    depth_eps: &Bound<'py, PyAny>,
+    width: usize,
+    height: usize,
+    v_image: Option<&Bound<'py, PyAny>>,
+    v_transmittance: Option<&Bound<'py, PyAny>>,
+    num_threads: usize,
+) -> PyResult<Bound<'py, PyTuple>> {
+    with_float_type!(means2d, T => rasterize_backward_typed::<T>(
+        py,
+        state,
+        means2d.extract()?,
+        conics.extract()?,
+        colors.extract()?,
+        opacities.extract()?,
+        depths.extract()?,
+        radii,
+        optional_array(background)?,
+        optional_array(depth_map)?,
+        depth_eps.extract()?,
+        width,
+        height,
+        optional_array(v_image)?,
+        optional_array(v_transmittance)?,
+        num_threads,
+    ))
+}
+
+pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_class::<SplatState>()?;
+    m.add_function(wrap_pyfunction!(splat_project_forward, m)?)?;
+    m.add_function(wrap_pyfunction!(splat_project_backward, m)?)?;
+    m.add_function(wrap_pyfunction!(splat_rasterize_forward, m)?)?;
+    m.add_function(wrap_pyfunction!(splat_rasterize_backward, m)?)?;
+    Ok(())
+}

@@ -1,13 +1,14 @@
-//! Binding of `urhead_core::ssim`: masked SSIM and L1 of `(H, W, C)` images, each as a
-//! value-only entry point and a value-with-gradient one, in float32 and float64.
+//! Binding of `urhead_core::ssim`: masked SSIM and L1 of `(H, W, C)` images, chosen by
+//! name, as a value-only entry point and a value-with-gradient one, each serving float32
+//! and float64.
 
 use numpy::{Element, PyReadonlyArrayDyn};
 use pyo3::prelude::*;
-use urhead_core::ssim::{masked_l1, masked_l1_with_grad, masked_ssim, masked_ssim_with_grad, SsimInputs};
+use urhead_core::ssim::{self, SsimInputs};
 use urhead_core::{Real, Result};
 
-use crate::arrays::{array, data, shape};
-use crate::errors::{py_err, ShapeError};
+use crate::arrays::{array, data, optional_array, shape, with_float_type};
+use crate::errors::{py_err, InvalidArgumentError, ShapeError};
 use crate::pool::with_threads;
 
 type Arr<'py, T> = PyReadonlyArrayDyn<'py, T>;
@@ -70,85 +71,76 @@ fn value_and_grad<'py, T: Element + Real>(
     target: Arr<'py, T>,
     mask: Option<Arr<'py, T>>,
     num_threads: usize,
-) -> PyResult<(f64, Bound<'py, numpy::PyArrayDyn<T>>)> {
+) -> PyResult<(f64, Bound<'py, PyAny>)> {
     let inputs = inputs(&image, &target, mask.as_ref())?;
     let (v, grad) = py
         .allow_threads(|| with_threads(num_threads, || kernel(&inputs)))
         .map_err(py_err)?;
     let dims = [inputs.height, inputs.width, inputs.channels];
-    Ok((v.to_f64().unwrap_or(f64::NAN), array(py, grad, &dims)?))
+    Ok((v.to_f64().unwrap_or(f64::NAN), array(py, grad, &dims)?.into_any()))
 }
 
-macro_rules! entry_points {
-    ($value:ident, $grad:ident, $kernel:ident, $kernel_grad:ident, $what:literal, $t:ty) => {
-        #[doc = concat!("Masked mean ", $what, " of (H, W, C) images; mask (H, W) or None.")]
-        #[pyfunction]
-        pub fn $value(
-            py: Python<'_>,
-            image: Arr<'_, $t>,
-            target: Arr<'_, $t>,
-            mask: Option<Arr<'_, $t>>,
-            num_threads: usize,
-        ) -> PyResult<f64> {
-            value(py, $kernel::<$t>, image, target, mask, num_threads)
-        }
-
-        #[doc = concat!("Masked mean ", $what, " and its (H, W, C) gradient in `image`.")]
-        #[pyfunction]
-        pub fn $grad<'py>(
-            py: Python<'py>,
-            image: Arr<'py, $t>,
-            target: Arr<'py, $t>,
-            mask: Option<Arr<'py, $t>>,
-            num_threads: usize,
-        ) -> PyResult<(f64, Bound<'py, numpy::PyArrayDyn<$t>>)> {
-            value_and_grad(py, $kernel_grad::<$t>, image, target, mask, num_threads)
-        }
-    };
+/// The core kernels of `metric` ("ssim" or "l1"): value, and value with gradient.
+#[allow(clippy::type_complexity)]
+fn kernels<T: Real>(
+    metric: &str,
+) -> PyResult<(
+    fn(&SsimInputs<'_, T>) -> Result<T>,
+    fn(&SsimInputs<'_, T>) -> Result<(T, Vec<T>)>,
+)> {
+    match metric {
+        "ssim" => Ok((ssim::masked_ssim::<T>, ssim::masked_ssim_with_grad::<T>)),
+        "l1" => Ok((ssim::masked_l1::<T>, ssim::masked_l1_with_grad::<T>)),
+        _ => Err(InvalidArgumentError::new_err(format!(
+            "metric must be \"ssim\" or \"l1\", got {metric:?}"
+        ))),
+    }
 }
 
-entry_points!(
-    masked_ssim_f32,
-    masked_ssim_grad_f32,
-    masked_ssim,
-    masked_ssim_with_grad,
-    "SSIM",
-    f32
-);
-entry_points!(
-    masked_ssim_f64,
-    masked_ssim_grad_f64,
-    masked_ssim,
-    masked_ssim_with_grad,
-    "SSIM",
-    f64
-);
-entry_points!(
-    masked_l1_f32,
-    masked_l1_grad_f32,
-    masked_l1,
-    masked_l1_with_grad,
-    "absolute difference",
-    f32
-);
-entry_points!(
-    masked_l1_f64,
-    masked_l1_grad_f64,
-    masked_l1,
-    masked_l1_with_grad,
-    "absolute difference",
-    f64
-);
+/// Masked mean `metric` ("ssim" or "l1": mean absolute difference) of (H, W, C) images;
+/// mask (H, W) or None.
+#[pyfunction]
+pub fn masked_mean<'py>(
+    py: Python<'py>,
+    metric: &str,
+    image: &Bound<'py, PyAny>,
+    target: &Bound<'py, PyAny>,
+    mask: Option<&Bound<'py, PyAny>>,
+    num_threads: usize,
+) -> PyResult<f64> {
+    with_float_type!(image, T => value(
+        py,
+        kernels::<T>(metric)?.0,
+        image.extract()?,
+        target.extract()?,
+        optional_array(mask)?,
+        num_threads,
+    ))
+}
+
+/// Masked mean `metric` and its (H, W, C) gradient in `image`.
+#[pyfunction]
+pub fn masked_mean_grad<'py>(
+    py: Python<'py>,
+    metric: &str,
+    image: &Bound<'py, PyAny>,
+    target: &Bound<'py, PyAny>,
+    mask: Option<&Bound<'py, PyAny>>,
+    num_threads: usize,
+) -> PyResult<(f64, Bound<'py, PyAny>)> {
+    with_float_type!(image, T => value_and_grad(
+        py,
+        kernels::<T>(metric)?.1,
+        image.extract()?,
+        target.extract()?,
+        optional_array(mask)?,
+        num_threads,
+    ))
+}
 
 /// Adds the entry points to `_core`.
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
-    m.add_function(wrap_pyfunction!(masked_ssim_f32, m)?)?;
-    m.add_function(wrap_pyfunction!(masked_ssim_grad_f32, m)?)?;
-    m.add_function(wrap_pyfunction!(masked_l1_f32, m)?)?;
-    m.add_function(wrap_pyfunction!(masked_l1_grad_f32, m)?)?;
-    m.add_function(wrap_pyfunction!(masked_ssim_f64, m)?)?;
-    m.add_function(wrap_pyfunction!(masked_ssim_grad_f64, m)?)?;
-    m.add_function(wrap_pyfunction!(masked_l1_f64, m)?)?;
-    m.add_function(wrap_pyfunction!(masked_l1_grad_f64, m)?)?;
+    m.add_function(wrap_pyfunction!(masked_mean, m)?)?;
+    m.add_function(wrap_pyfunction!(masked_mean_grad, m)?)?;
     Ok(())
 }

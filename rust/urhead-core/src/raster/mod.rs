@@ -36,6 +36,7 @@ mod rasterize;
 mod runs;
 mod setup;
 mod sparse;
+mod taps;
 mod texture;
 mod topology;
 mod uv;

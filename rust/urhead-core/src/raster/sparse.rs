@@ -14,9 +14,7 @@
 
 use rayon::prelude::*;
 
-use super::texture::{
-    gradient_taps, uv_gradient, uv_gradient_ahead, TexShape, PREFETCH_DISTANCE, SAMPLE_CHUNK,
-};
+use super::taps::{gradient_taps, uv_gradient, uv_gradient_ahead, TexShape, PREFETCH_DISTANCE, SAMPLE_CHUNK};
 use crate::error::Result;
 use crate::memory::{prefetch, zeroed};
 use crate::Real;

@@ -30,16 +30,18 @@ mod project;
 mod raster;
 mod raster_backward;
 mod records;
-pub mod sh;
+#[cfg(any(test, feature = "testing"))]
 pub mod synthetic;
 
 pub use binning::Binning;
 pub use project::{project_backward, project_forward};
 pub use raster::{rasterize_forward, rasterize_forward_with, RasterForward};
 pub use raster_backward::{rasterize_backward, rasterize_backward_with, RasterGrads};
+#[cfg(any(test, feature = "testing"))]
 pub use synthetic::SyntheticSplat;
 
 use crate::error::{check_finite, check_len, Error, Result};
+use crate::sh::num_sh_coeffs;
 use crate::Real;
 
 /// Samples with alpha below this are skipped; opacities below it are culled.
@@ -108,7 +110,7 @@ impl<T: Real> ProjectInputs<'_, T> {
                     reason: format!("must be 0, 1, 2 or 3, got {}", sh.degree),
                 });
             }
-            let need = sh::num_sh_coeffs(sh.degree);
+            let need = num_sh_coeffs(sh.degree);
             if sh.num_coeffs < need {
                 return Err(Error::Shape {
                     arg: "sh",

@@ -4,10 +4,10 @@
 
 use rayon::prelude::*;
 
-use super::sh::{sh_to_rgb, sh_to_rgb_backward};
 use super::{ProjectGradOutputs, ProjectGrads, ProjectInputs, ProjectNeeds, Projected, GAUSSIAN_CHUNK};
 use super::{ALPHA_MIN, DILATION, EXTENT_CAP};
 use crate::mat3::{matmul, matmul_nt, matmul_tn, transpose, M3, V3};
+use crate::sh::{sh_to_rgb, sh_to_rgb_backward};
 use crate::{Camera, Real};
 
 /// The camera in the kernel's float type, with the Jacobian clamp limits.

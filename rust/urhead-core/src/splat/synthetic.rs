@@ -1,8 +1,8 @@
 //! Deterministic synthetic splatting scenes shared by tests and benches: Gaussians of
 //! head-avatar size (a few mm) filling a head-sized ellipsoid in front of a camera.
 
-use super::sh::num_sh_coeffs;
 use super::{ProjectInputs, ShCoeffs};
+use crate::sh::num_sh_coeffs;
 use crate::testing::Rng;
 use crate::{Camera, Real};
 

@@ -28,6 +28,7 @@ import torch
 import torch.nn.functional as F
 
 from urhead.errors import InvalidArgumentError
+from urhead.losses import masked_mean
 
 # (conv layers as (in, out, kernel, stride, padding), indices of features.N, pools after,
 #  taps: the number of convs after which a feature map is taken)
@@ -165,11 +166,7 @@ class Lpips:
         return total[0, 0]
 
     def __call__(self, image, target, mask=None) -> float:
-        d = self.distance_map(image, target)
-        if mask is None:
-            return float(d.mean())
-        weight = mask.float()
-        return float((d * weight).sum() / weight.sum().clamp_min(1))
+        return float(masked_mean(self.distance_map(image, target), mask))
 
 
 def _get(state: dict, key: str, path: Path) -> torch.Tensor:

@@ -2,7 +2,7 @@
 can represent (wrinkles as true displacement of a Loop-subdivided surface, albedo detail
 finer than any UV map, hair and eyelashes off the FLAME surface, a specular light),
 performing a talking, expressive sequence with head turns up to ±35° yaw, ray-traced by
-:mod:`urhead.raytrace` and written in the VHAP / GaussianAvatars layout with noisy
+:mod:`urhead.data.synth.raytrace` and written in the VHAP / GaussianAvatars layout with noisy
 ("tracked") FLAME parameters and ground-truth normal maps.
 
 Three conditions the model cannot follow exactly can each be set apart, so that each and
@@ -33,11 +33,11 @@ import torch
 from urhead.camera import Camera
 from urhead.data.background import parse_background
 from urhead.data.manifest import MANIFEST, manifest_problem, write_manifest
-from urhead.data.subdivision import vertex_normals
-from urhead.data.synth_motion import FPS, MOTIONS, performance, tracking_noise
-from urhead.data.synth_scene import HAIR_MODES, MATERIALS, Strands, SubjectLook, build_look
+from urhead.data.synth.motion import FPS, MOTIONS, performance, tracking_noise
+from urhead.data.synth.raytrace import Light, TriangleBvh, raytrace
+from urhead.data.synth.scene import HAIR_MODES, MATERIALS, Strands, SubjectLook, build_look
 from urhead.data.writer import SubjectWriter
-from urhead.raytrace import Light, TriangleBvh, raytrace
+from urhead.head.mesh import vertex_normals_numpy
 
 GENERATOR_VERSION = 3
 """Bump when the generator's output changes: it is part of the cache key."""
@@ -141,7 +141,7 @@ class SynthConfig:
     """RGB in [0, 1] the frames are composited on."""
     motion: str = "talking"
     """The performance: ``talking``, or remade as ``extreme`` poses or ``off_screen`` (see
-    :data:`urhead.data.synth_motion.MOTIONS`)."""
+    :data:`urhead.data.synth.motion.MOTIONS`)."""
     length_unit: float = 1.0
     """Metres per length unit of the written files (head model, cameras, FLAME
     translations): 1e-3 writes millimetres, 1e3 kilometres. The images do not change."""
@@ -456,12 +456,12 @@ class _FrameRenderer:
         look = self.look
         coarse = verts.astype(np.float64)
         fine = look.S @ coarse
-        n0 = vertex_normals(fine, look.faces, look.normal_op)
+        n0 = vertex_normals_numpy(fine, look.faces, look.normal_op)
         disp = look.static_offset.astype(np.float64).copy()
         for name, field in look.wrinkle_fields.items():
             disp += activation.get(name, 0.0) * field
         fine = fine + disp[:, None] * n0
-        normals = vertex_normals(fine, look.faces, look.normal_op)
+        normals = vertex_normals_numpy(fine, look.faces, look.normal_op)
         parts = [(fine, look.faces, normals, look.colors, look.solid, look.face_material)]
         for strands in look.strands:
             if len(strands):

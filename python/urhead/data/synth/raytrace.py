@@ -19,10 +19,11 @@ from typing import NamedTuple
 
 import numpy as np
 
-from urhead import _core
 from urhead._threads import num_threads
 from urhead.camera import Camera
 from urhead.errors import IndexRangeError, InvalidArgumentError, ShapeError
+from urhead.head.mesh import vertex_normals_numpy
+from urhead.ops._bridge import native
 
 
 @dataclass(frozen=True)
@@ -133,7 +134,7 @@ class TriangleBvh:
 
     def __init__(self, vertices, faces):
         vertices = _vertices(vertices)
-        self._core = _core.TriangleBvh(vertices, _faces(faces, len(vertices)))
+        self._core = native("TriangleBvh")(vertices, _faces(faces, len(vertices)))
 
     @property
     def num_faces(self) -> int:
@@ -156,18 +157,6 @@ def _faces(faces, num_vertices: int) -> np.ndarray:
             f"faces must index [0, {num_vertices}), got [{faces.min()}, {faces.max()}]"
         )
     return np.ascontiguousarray(faces, dtype=np.int32)
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(V, 3) area-weighted unit vertex normals (zero for unused vertices)."""
-    v = np.asarray(vertices, np.float64)
-    f = np.asarray(faces, np.int64)
-    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    n = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(n, f[:, k], fn)
-    length = np.linalg.norm(n, axis=1, keepdims=True)
-    return (n / np.maximum(length, 1e-30)).astype(np.float32)
 
 
 def raytrace(
@@ -235,14 +224,14 @@ def raytrace(
     if bvh is not None and bvh.num_faces != nf:
         raise InvalidArgumentError(f"bvh was built over {bvh.num_faces} faces, the scene has {nf}")
     if normals is None:
-        normals = vertex_normals(vertices, faces)
+        normals = vertex_normals_numpy(vertices, faces)
     if colors is None:
         colors = np.full((nv, 3), 0.8, np.float32)
     if face_material is None:
         face_material = np.zeros(nf, np.int32)
     table = np.asarray([m.row() for m in materials], np.float32).reshape(-1, 8)
     decal_table = np.zeros((0, 12), np.float32) if decals is None else decals
-    out = _core.raytrace_render(
+    out = native("raytrace_render")(
         vertices,
         faces,
         f32("normals", normals, 3),

@@ -19,9 +19,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from urhead.data.subdivision import subdivide, vertex_normal_operator
+from urhead.data.synth.raytrace import Material, decal
+from urhead.data.synth.subdivision import subdivide
+from urhead.head.mesh import vertex_normal_operator, vertex_normals_numpy
 from urhead.head.model import HeadModel, region_index
-from urhead.raytrace import Material, decal
 
 # Material ids (rows of MATERIALS).
 SKIN, LIPS, EYE, MOUTH, TEETH, HAIR, STRAND, LASH = range(8)
@@ -435,6 +436,4 @@ def _lashes(head, rest, region, marks, rng) -> Strands:
 
 
 def _rest_normals(head, rest):
-    from urhead.data.subdivision import vertex_normals
-
-    return vertex_normals(rest, head.faces, vertex_normal_operator(head.faces, head.num_vertices))
+    return vertex_normals_numpy(rest, head.faces)

@@ -26,6 +26,7 @@ import torch
 import torch.nn.functional as F
 
 from urhead.errors import InvalidArgumentError
+from urhead.losses import masked_mean
 
 WEIGHTS = Path("weights") / "vST0.0" / "alex_shift_tolerant.pth"
 """The weight file, inside the installed ``stlpips_pytorch`` package."""
@@ -115,8 +116,7 @@ class StLpips:
         total = sum(
             F.interpolate(m, size=size, mode="bilinear", align_corners=False)[0, 0] for m in maps
         )
-        weight = mask.float()
-        return float((total * weight).sum() / weight.sum().clamp_min(1))
+        return float(masked_mean(total, mask))
 
     def __call__(self, image, target, mask=None) -> float:
         return self.distance(self.features(image), self.features(target), mask)

@@ -11,7 +11,8 @@ import torch
 import torch.nn.functional as F
 
 from urhead import hugepages
-from urhead.model.layout import MapLayout
+from urhead.head.mesh import vertex_normals
+from urhead.model.map_layout import MapLayout
 from urhead.ops import interpolate, rasterize, rasterize_uv
 from urhead.sh import rgb_to_sh_dc
 
@@ -24,15 +25,6 @@ FLATNESS = 0.25
 VISIBILITY_TOLERANCE = 3e-3
 """A texel counts as seen in a frame when it lies within this many metres of the mesh
 depth at its pixel."""
-
-
-def vertex_normals(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
-    """(V, 3) area-weighted unit vertex normals of counter-clockwise faces."""
-    f = faces.long()
-    a, b, c = verts[f[:, 0]], verts[f[:, 1]], verts[f[:, 2]]
-    face_n = torch.linalg.cross(b - a, c - a)
-    n = torch.zeros_like(verts).index_add_(0, f.reshape(-1), face_n.repeat_interleave(3, 0))
-    return n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 
 def fill_holes(values: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:

@@ -4,9 +4,9 @@ a subject's held-out frames (FORMATS.md "Evaluation protocol").
 Metrics are on the subject's background (the avatar's ``background``), inside the frame's
 head mask unless named ``*_full`` (the whole image, the convention of the INSTA / URHead
 tables): PSNR and SSIM (:mod:`urhead.losses`), PSNR of the mesh branch alone,
-LPIPS-alex / LPIPS-vgg when their weights are on disk (:mod:`urhead.use.lpips`),
+LPIPS-alex / LPIPS-vgg when their weights are on disk (:mod:`urhead.eval.lpips`),
 ST-LPIPS-alex (``stlpips_alex``, shift-tolerant LPIPS from the weights the
-``stlpips-pytorch`` wheel ships, :mod:`urhead.use.stlpips`; lower is better). Held-out
+``stlpips-pytorch`` wheel ships, :mod:`urhead.eval.stlpips`; lower is better). Held-out
 frames are scored with their tracked FLAME parameters; with ``--refine-flame`` also after
 test-time refinement of each held-out frame's FLAME row against the frozen avatar
 (``psnr_refined``, ``psnr_refined_full``, ``ssim_refined``; :mod:`urhead.eval.refine`).
@@ -29,20 +29,23 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import statistics
 import sys
-import time
 from pathlib import Path
 
 import torch
 
+from urhead._atomic import write_file_atomically
 from urhead._progress import progress as progress_bar
-from urhead._progress import tracked
 from urhead.eval import RefineSettings, evaluate_frames, refine_params_of
 from urhead.eval.metrics import frame_params
-from urhead.files import write_file_atomically
-from urhead.losses import psnr, ssim
+from urhead.eval.per_frame import (
+    FLAME_PARAMETERS,
+    METRIC_REGION,
+    mean,
+    score_frames,
+    variance,
+)
 from urhead.use.common import (
     add_background_option,
     check_output_file,
@@ -50,6 +53,13 @@ from urhead.use.common import (
     open_subject,
     split_frames,
     use_background,
+)
+
+TEMPORAL_KEYS = (
+    "temporal_error_change",
+    "temporal_lpips_alex",
+    "temporal_lpips_vgg",
+    "temporal_stlpips_alex",
 )
 
 
@@ -115,8 +125,8 @@ def add_parser(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from urhead.use.lpips import load_lpips
-    from urhead.use.stlpips import load_stlpips
+    from urhead.eval.lpips import load_lpips
+    from urhead.eval.stlpips import load_stlpips
 
     opened = open_avatar(args.avatar)
     to_stdout = args.json == "-"
@@ -182,7 +192,7 @@ def evaluate_avatar(
 ) -> dict:
     """Scores ``frames`` (dataset frames with image, mask, camera, flame); ``lpips`` maps a
     variant name ("alex", "vgg") to a scorer ``(image, target, mask) -> float``;
-    ``stlpips`` is a :class:`~urhead.use.stlpips.StLpips` or None; with ``refine`` also
+    ``stlpips`` is a :class:`~urhead.eval.stlpips.StLpips` or None; with ``refine`` also
     after test-time refinement. Returns the JSON-ready metrics (module docstring)."""
     if len(frames) == 0:
         raise ValueError("frames is empty: nothing to evaluate")
@@ -217,102 +227,55 @@ def evaluate_avatar(
 def _evaluate(
     avatar, frames, *, occlusion_aware: bool, lpips: dict, stlpips, progress: bool
 ) -> dict:
+    params = [frame_params(avatar, frame) for frame in frames]
     first = frames[0]
-    avatar.render(frame_params(avatar, first), first.camera, occlusion_aware=occlusion_aware)
-    per = {"psnr": [], "psnr_full": [], "ssim": [], "psnr_mesh_only": [], "seconds": []}
-    per.update({f"lpips_{v}": [] for v in lpips})
-    per["stlpips_alex"] = []
-    temporal = {"temporal_error_change": []}
-    temporal.update({f"temporal_lpips_{v}": [] for v in ("alex", "vgg")})
-    temporal["temporal_stlpips_alex"] = []
-    features = None  # ST-LPIPS features of this frame's (render, ground truth)
-    previous = None
-    for frame in tracked(frames, len(frames), "eval", enabled=progress):
-        params = frame_params(avatar, frame)
-        start = time.perf_counter()
-        out = avatar.render(params, frame.camera, occlusion_aware=occlusion_aware)
-        per["seconds"].append(time.perf_counter() - start)
-        image = out.image.clamp(0, 1)
-        per["psnr"].append(float(psnr(image, frame.image, frame.mask)))
-        per["psnr_full"].append(float(psnr(image, frame.image)))
-        per["ssim"].append(float(ssim(image, frame.image, frame.mask)))
-        per["psnr_mesh_only"].append(
-            float(psnr(out.mesh.image.clamp(0, 1), frame.image, frame.mask))
-        )
-        for v, net in lpips.items():
-            per[f"lpips_{v}"].append(net(image, frame.image, frame.mask))
-        previous_features = features
-        if stlpips is not None:
-            features = (stlpips.features(image), stlpips.features(frame.image))
-            per["stlpips_alex"].append(stlpips.distance(*features, frame.mask))
-        if previous is not None and _consecutive(previous[0], frame):
-            prev_frame, prev_image = previous
-            mask = frame.mask * prev_frame.mask
-            change = (image - frame.image) - (prev_image - prev_frame.image)
-            temporal["temporal_error_change"].append(float(_masked_mean(change.abs(), mask)))
-            for v, net in lpips.items():
-                ours = net(image, prev_image, mask)
-                truth = net(frame.image, prev_frame.image, mask)
-                temporal[f"temporal_lpips_{v}"].append(abs(ours - truth))
-            if stlpips is not None:
-                ours = stlpips.distance(features[0], previous_features[0], mask)
-                truth = stlpips.distance(features[1], previous_features[1], mask)
-                temporal["temporal_stlpips_alex"].append(abs(ours - truth))
-        previous = (frame, image)
-    median = statistics.median(per["seconds"])
+    avatar.render(params[0], first.camera, occlusion_aware=occlusion_aware)  # warm-up
+    per = score_frames(
+        avatar,
+        frames,
+        params,
+        occlusion_aware=occlusion_aware,
+        mesh_only=True,
+        perceptual={f"lpips_{v}": net for v, net in lpips.items()},
+        stlpips=stlpips,
+        temporal=True,
+        progress=progress,
+    )
+    median = statistics.median(per.seconds)
     result = {
         "frames": len(frames),
-        "psnr": _mean(per["psnr"]),
-        "psnr_full": _mean(per["psnr_full"]),
+        "psnr": mean(per.psnr),
+        "psnr_full": mean(per.psnr_full),
         "psnr_refined": None,
         "psnr_refined_full": None,
-        "ssim": _mean(per["ssim"]),
+        "ssim": mean(per.ssim),
         "ssim_refined": None,
-        "psnr_mesh_only": _mean(per["psnr_mesh_only"]),
+        "psnr_mesh_only": mean(per.psnr_mesh_only),
     }
     for v in ("alex", "vgg"):
-        result[f"lpips_{v}"] = _mean(per[f"lpips_{v}"]) if v in lpips else None
-    result["stlpips_alex"] = _mean(per["stlpips_alex"]) if stlpips is not None else None
-    for key, values in temporal.items():
-        result[f"{key}_mean"] = _mean(values) if values else None
-        result[f"{key}_var"] = _var(values) if values else None
-    result["temporal_pairs"] = len(temporal["temporal_error_change"])
+        result[f"lpips_{v}"] = mean(per.perceptual.get(f"lpips_{v}", []))
+    result["stlpips_alex"] = mean(per.stlpips_alex)
+    for key in TEMPORAL_KEYS:
+        values = per.temporal.get(key, [])
+        result[f"{key}_mean"] = mean(values)
+        result[f"{key}_var"] = variance(values)
+    result["temporal_pairs"] = len(per.temporal["temporal_error_change"])
     result.update(
         render_fps=1.0 / median,
         render_ms_median=1000.0 * median,
         resolution=[first.camera.width, first.camera.height],
         num_gaussians=avatar.num_gaussians,
-        metric_region="psnr, ssim: inside each frame's foreground mask; *_full: the whole "
-        "image; on the avatar's background",
-        flame_parameters="psnr*: held-out frames with their tracked FLAME parameters; "
-        "*_refined: after test-time refinement of each held-out frame's FLAME row",
+        metric_region=METRIC_REGION,
+        flame_parameters=FLAME_PARAMETERS,
         background=avatar.background.tolist(),
         per_frame={
-            "timestep": [f.timestep for f in frames],
-            "psnr": per["psnr"],
-            "ssim": per["ssim"],
-            "stlpips_alex": per["stlpips_alex"] if stlpips is not None else None,
+            "timestep": per.timesteps,
+            "psnr": per.psnr,
+            "ssim": per.ssim,
+            "stlpips_alex": per.stlpips_alex if stlpips is not None else None,
         },
     )
     return result
-
-
-def _consecutive(a, b) -> bool:
-    return b.timestep == a.timestep + 1 and b.camera_index == a.camera_index
-
-
-def _masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    weight = mask[..., None].expand_as(values)
-    return (values * weight).sum() / weight.sum().clamp_min(1)
-
-
-def _mean(xs) -> float:
-    return math.fsum(xs) / len(xs)
-
-
-def _var(xs) -> float:
-    m = _mean(xs)
-    return math.fsum((x - m) ** 2 for x in xs) / len(xs)
 
 
 def format_table(r: dict) -> str:
