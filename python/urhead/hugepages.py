@@ -22,14 +22,14 @@ import torch
 from urhead.errors import DTypeError
 from urhead.ops._bridge import native
 
-_ALLOCATORS = {torch.float32: "huge_page_zeros_f32", torch.int32: "huge_page_zeros_i32"}
+_DTYPE_NAMES = {torch.float32: "float32", torch.int32: "int32"}
 
 
 def zeros(shape: tuple[int, ...] | torch.Size, dtype: torch.dtype = torch.float32) -> torch.Tensor:
     """A contiguous tensor of zeros of ``shape`` (float32 or int32) on huge pages."""
-    if dtype not in _ALLOCATORS:
+    if dtype not in _DTYPE_NAMES:
         raise DTypeError(f"huge-page tensors are float32 or int32, got {dtype}")
-    flat = torch.from_numpy(native(_ALLOCATORS[dtype])(math.prod(shape)))
+    flat = torch.from_numpy(native("huge_page_zeros")(math.prod(shape), _DTYPE_NAMES[dtype]))
     return flat.reshape(shape)
 
 

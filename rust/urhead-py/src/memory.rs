@@ -3,30 +3,34 @@
 //! their first touch, which random texel reads into a multi-hundred-MB table need (on
 //! 4 KiB pages nearly every read misses the TLB). Torch's own allocator gives 4 KiB pages.
 
-use numpy::{IntoPyArray, PyArray1};
+use numpy::IntoPyArray;
 use pyo3::prelude::*;
 use urhead_core::memory::zeroed;
 
-use crate::errors::py_err;
+use crate::errors::{py_err, InvalidArgumentError};
 
-/// `len` float32 zeros on (advised) huge pages; MemoryError when they cannot be had.
-#[pyfunction]
-pub fn huge_page_zeros_f32(py: Python<'_>, len: usize) -> PyResult<Bound<'_, PyArray1<f32>>> {
-    Ok(zeroed::<f32>("huge-page table", len)
-        .map_err(py_err)?
-        .into_pyarray(py))
-}
+const WHAT: &str = "huge-page table";
 
-/// `len` int32 zeros on (advised) huge pages; MemoryError when they cannot be had.
+/// `len` zeros of numpy dtype `dtype` ("float32" or "int32") on (advised) huge pages;
+/// MemoryError when they cannot be had.
 #[pyfunction]
-pub fn huge_page_zeros_i32(py: Python<'_>, len: usize) -> PyResult<Bound<'_, PyArray1<i32>>> {
-    Ok(zeroed::<i32>("huge-page table", len)
-        .map_err(py_err)?
-        .into_pyarray(py))
+pub fn huge_page_zeros<'py>(py: Python<'py>, len: usize, dtype: &str) -> PyResult<Bound<'py, PyAny>> {
+    match dtype {
+        "float32" => Ok(zeroed::<f32>(WHAT, len)
+            .map_err(py_err)?
+            .into_pyarray(py)
+            .into_any()),
+        "int32" => Ok(zeroed::<i32>(WHAT, len)
+            .map_err(py_err)?
+            .into_pyarray(py)
+            .into_any()),
+        other => Err(InvalidArgumentError::new_err(format!(
+            "dtype must be float32 or int32, got {other}"
+        ))),
+    }
 }
 
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
-    m.add_function(wrap_pyfunction!(huge_page_zeros_f32, m)?)?;
-    m.add_function(wrap_pyfunction!(huge_page_zeros_i32, m)?)?;
+    m.add_function(wrap_pyfunction!(huge_page_zeros, m)?)?;
     Ok(())
 }
