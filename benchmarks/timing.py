@@ -25,6 +25,28 @@ def median_ms(
     return statistics.median(times)
 
 
+def wall_cpu_samples(fn: Callable[[], object], repeats: int) -> tuple[list, list]:
+    """``(wall_ms, cpu_ms)`` of ``repeats`` calls of ``fn()``: wall time and the process
+    CPU time each took (user + system, all threads)."""
+    wall, cpu = [], []
+    for _ in range(repeats):
+        w0, c0 = time.perf_counter(), time.process_time()
+        fn()
+        wall.append((time.perf_counter() - w0) * 1e3)
+        cpu.append((time.process_time() - c0) * 1e3)
+    return wall, cpu
+
+
+def median_wall_cpu_ms(fn: Callable[[], object], repeats: int, warmup: int = 1) -> dict:
+    """``{"wall_ms", "cpu_ms"}``: medians of ``fn()``'s wall time and of the process CPU
+    time it took. On a shared machine the CPU time stays meaningful when the wall time is
+    inflated by other work; CPU / wall is the parallelism the call reached."""
+    for _ in range(warmup):
+        fn()
+    wall, cpu = wall_cpu_samples(fn, repeats)
+    return {"wall_ms": statistics.median(wall), "cpu_ms": statistics.median(cpu)}
+
+
 def report(rows: list[tuple[str, float, float | None]]) -> None:
     """Prints ``(name, urhead_ms, reference_ms)`` rows with the speed-up ratio."""
     print(f"{'case':<40} {'urhead ms':>10} {'torch ms':>10} {'ratio':>8}")

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import torch
 
+from urhead import hugepages
 from urhead._threads import num_threads
 from urhead.errors import DTypeError, InvalidArgumentError, ShapeError
 from urhead.ops._bridge import native
@@ -113,7 +114,9 @@ class SparseAdam(torch.optim.Optimizer):
             for p in group["params"]:
                 state = self.state[p]
                 if "steps" in state:
-                    state["steps"] = state["steps"].to(torch.int32).contiguous()
+                    state["steps"] = hugepages.copy(state["steps"].to(torch.int32))
+                    for moment in ("exp_avg", "exp_avg_sq"):
+                        state[moment] = hugepages.copy(state[moment])
 
     @torch.no_grad()
     def step(self, closure=None):
@@ -143,9 +146,10 @@ class SparseAdam(torch.optim.Optimizer):
         channels = p.shape[-1]
         state = self.state[p]
         if not state:
-            state["exp_avg"] = torch.zeros_like(p)
-            state["exp_avg_sq"] = torch.zeros_like(p)
-            state["steps"] = torch.zeros(p.numel() // channels, dtype=torch.int32)
+            # Read and written at random rows every step: on huge pages, as the maps are.
+            state["exp_avg"] = hugepages.zeros(p.shape)
+            state["exp_avg_sq"] = hugepages.zeros(p.shape)
+            state["steps"] = hugepages.zeros((p.numel() // channels,), torch.int32)
             state["rejected_rows"] = 0
         rows, values = rows_and_values(p, p.grad)
         if rows.numel() == 0:

@@ -10,6 +10,7 @@ from collections.abc import Sequence
 import torch
 import torch.nn.functional as F
 
+from urhead import hugepages
 from urhead.head.mesh import vertex_normals
 from urhead.model.map_layout import MapLayout
 from urhead.ops import interpolate, rasterize, rasterize_uv
@@ -132,7 +133,7 @@ def initial_maps(
     """
     h, w = map_size(resolution)
     covered = uv_raster.tri_id >= 0
-    maps = torch.zeros(h, w, layout.channels)
+    maps = hugepages.zeros((h, w, layout.channels))
     rest_normals = vertex_normals(rest_verts, faces)
     normal_map = interpolate(rest_normals, uv_raster, faces)
     normal_map = fill_holes(normal_map, covered.float())

@@ -28,6 +28,7 @@ from typing import BinaryIO
 import numpy as np
 import torch
 
+from urhead import hugepages
 from urhead._atomic import write_bytes_atomically, write_directory_atomically
 from urhead.errors import InvalidArgumentError, NonFiniteError, ShapeError, reading
 from urhead.head import head_fingerprint, load_head, save_head
@@ -219,7 +220,7 @@ def _read_avatar(path: Path, files: dict[str, BinaryIO]) -> tuple[Avatar, dict]:
     avatar = Avatar(
         head=head,
         layout=layout,
-        maps=maps.float().contiguous(),
+        maps=hugepages.copy(maps.float()),
         gaussian_uv=uv.float().contiguous(),
         gaussian_face=face.long(),
         gaussian_bary=bary.float().contiguous(),

@@ -23,6 +23,7 @@ mod arrays;
 mod camera;
 mod errors;
 mod lbs;
+mod memory;
 mod pool;
 mod raster;
 mod raytrace;
@@ -38,6 +39,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     camera::register(m)?;
     adam::register(m)?;
     lbs::register(m)?;
+    memory::register(m)?;
     raster::register(m)?;
     splat::register(m)?;
     raytrace::register(m)?;

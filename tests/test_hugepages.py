@@ -1,0 +1,90 @@
+"""Large long-lived tensors (maps, Adam moments) allocated on transparent huge pages."""
+
+import re
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from urhead import hugepages
+from urhead.errors import DTypeError
+from urhead.optim import SparseAdam
+
+THP_SETTING = Path("/sys/kernel/mm/transparent_hugepage/enabled")
+# 64 MiB: above glibc's largest mmap threshold (32 MiB), so always a fresh mapping (a smaller
+# block may reuse heap memory already backed by 4 KiB pages, where advice comes too late).
+LARGE = (1024, 1024, 16)
+
+
+def thp_mode() -> str | None:
+    """The bracketed THP mode ('always', 'madvise', 'never'), None where there is none."""
+    try:
+        match = re.search(r"\[(\w+)\]", THP_SETTING.read_text())
+    except OSError:
+        return None
+    return match[1] if match else None
+
+
+def huge_page_kib(t: torch.Tensor) -> int:
+    """AnonHugePages (KiB) of the mappings overlapping ``t``'s storage."""
+    lo = t.data_ptr()
+    hi = lo + t.numel() * t.element_size()
+    overlaps, total = False, 0
+    for line in Path("/proc/self/smaps").read_text().splitlines():
+        span = re.match(r"^([0-9a-f]+)-([0-9a-f]+) ", line)
+        if span:
+            overlaps = int(span[1], 16) < hi and int(span[2], 16) > lo
+        elif overlaps and line.startswith("AnonHugePages:"):
+            total += int(line.split()[1])
+    return total
+
+
+def test_zeros_are_zeros_of_the_asked_shape_and_dtype():
+    for dtype in (torch.float32, torch.int32):
+        for shape in ((0,), (3, 5, 7), (1 << 21,)):
+            t = hugepages.zeros(shape, dtype)
+            assert t.shape == shape and t.dtype == dtype and t.is_contiguous()
+            assert not t.any()
+
+
+def test_other_dtypes_are_refused_with_a_typed_error():
+    with pytest.raises(DTypeError, match=r"float32 or int32.*float64"):
+        hugepages.zeros((4,), torch.float64)
+
+
+def test_copy_is_equal_and_independent():
+    source = torch.randn(64, 64, 9, requires_grad=True)
+    out = hugepages.copy(source)
+    assert torch.equal(out, source.detach()) and not out.requires_grad
+    out += 1
+    assert not torch.equal(out, source.detach())
+
+
+@pytest.mark.skipif(
+    sys.platform != "linux" or thp_mode() not in ("always", "madvise"),
+    reason="transparent huge pages need Linux with THP in 'always' or 'madvise' mode",
+)
+def test_a_large_table_is_backed_by_huge_pages():
+    # (Whether a plain torch tensor gets 4 KiB pages depends on what the allocator reuses:
+    # memory advised earlier in the process keeps its advice, so that is not asserted.)
+    ours = hugepages.zeros(LARGE)
+    ours.fill_(1.0)  # first touch: the kernel backs the advised range
+    assert huge_page_kib(ours) >= 32 << 10  # at least half the table on 2 MiB pages
+
+
+def test_sparse_adam_state_and_restored_state_are_huge_page_tables():
+    param = torch.randn(LARGE)
+    param.grad = torch.randn(LARGE)  # every row: the step touches all of the moments
+    opt = SparseAdam([param], lr=1e-2)
+    opt.step()
+    restored = SparseAdam([param], lr=1e-2)
+    restored.load_state_dict(opt.state_dict())
+    for state in (opt.state[param], restored.state[param]):
+        assert state["steps"].dtype == torch.int32
+        if sys.platform == "linux" and thp_mode() in ("always", "madvise"):
+            for name in ("exp_avg", "exp_avg_sq"):
+                assert huge_page_kib(state[name]) >= 32 << 10, name
+    for name in ("exp_avg", "exp_avg_sq", "steps"):
+        a, b = opt.state[param][name], restored.state[param][name]
+        assert torch.equal(a, b) and a.data_ptr() != b.data_ptr()
