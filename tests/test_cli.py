@@ -66,7 +66,7 @@ def test_the_command_table_matches_the_modules():
         ("synth", ["(default: 600)"]),
         ("reenact", ["MP4 frame rate (default: 25.0)"]),
         # fit: the field's default and the quick preset's value, side by side
-        ("fit", ["(default: paper)", "--preset quick: 1800)"]),
+        ("fit", ["(default: paper)", "--preset quick: 1500)"]),
     ],
 )
 def test_help_shows_defaults(command, expected, capsys):

@@ -262,9 +262,9 @@ FIT_PRESETS: dict[str, dict] = {
     # The built-in subject end to end in minutes on 2 cores: smaller maps, fewer iterations.
     "quick": {
         # Held-out PSNR is flat from ~900 iterations on (the main job at 512²: 25.9-26.1 dB
-        # from 900 to 2000); 1800 keep it inside 15 minutes on 2 cores with the full-size
-        # refinement steps.
-        "iterations": 1_800,
+        # from 900 to 2000; 26.1-26.6 on 16 frames from 1100 to 1800); 1500 keep the main
+        # job inside 15 minutes on 2 cores with the full-size refinement steps.
+        "iterations": 1_500,
         "uv_resolution": 512,
         "initial_gaussians": 6_000,
         "max_gaussians": 15_000,
