@@ -16,7 +16,7 @@ LR = torch.tensor([5e-4, 1e-3, 5e-3, 5e-2, 1e-5])
 
 def sparse_grad(rows, values):
     index = torch.stack([rows // W, rows % W])
-    return torch.sparse_coo_tensor(index, values, (H, W, C))
+    return torch.sparse_coo_tensor(index, values, (H, W, C), check_invariants=True)
 
 
 def test_matches_reference_over_steps_with_changing_texel_sets():
@@ -136,7 +136,7 @@ def test_deterministic_across_thread_counts(monkeypatch, stability):
             rows = torch.randperm(64 * 64, generator=g)[:1500].sort().values
             values = torch.randn(1500, C, generator=g)
             p.grad = torch.sparse_coo_tensor(
-                torch.stack([rows // 64, rows % 64]), values, (64, 64, C)
+                torch.stack([rows // 64, rows % 64]), values, (64, 64, C), check_invariants=True
             )
             opt.step()
         results.append(p)
