@@ -63,6 +63,12 @@ class FlameParams(NamedTuple):
     transl: torch.Tensor
     """(3,) translation, metres."""
 
+    @classmethod
+    def from_row(cls, row: torch.Tensor, num_expr: int) -> FlameParams:
+        """A frame table's row ``[expr (num_expr), pose (15), transl (3)]`` split up."""
+        e = num_expr
+        return cls(row[:e], row[e : e + POSE_SIZE], row[e + POSE_SIZE :])
+
 
 class MeshRender(NamedTuple):
     image: torch.Tensor
@@ -206,8 +212,7 @@ class Avatar:
         return int(rows[0, 0])
 
     def split_params(self, row: torch.Tensor) -> FlameParams:
-        e = self.num_expr
-        return FlameParams(row[:e], row[e : e + POSE_SIZE], row[e + POSE_SIZE :])
+        return FlameParams.from_row(row, self.num_expr)
 
     def params_from_flame(self, flame: dict) -> FlameParams:
         """FLAME parameters of a dataset frame (FORMATS.md keys) as :class:`FlameParams`,
@@ -263,13 +268,7 @@ class Avatar:
 
     def skin(self, params: FlameParams) -> tuple[torch.Tensor, torch.Tensor]:
         """FLAME skinning: ``(verts (V, 3), rotations (V, 3, 3))``."""
-        skinned = lbs(
-            params.expr[None].contiguous(),
-            params.pose[None].contiguous(),
-            transl=params.transl[None].contiguous(),
-            **self.tables().lbs,
-        )
-        return skinned.verts[0], skinned.rotations[0]
+        return skin(self.tables().lbs, params)
 
     def lookup(self, uv: torch.Tensor, gather: TextureGather | None = None) -> torch.Tensor:
         """The maps at UV points (..., 2) → (..., channels), bilinear."""
@@ -406,6 +405,18 @@ class HeadTables:
     """(V, 2) one UV point per vertex (seam-free)."""
     topology: torch.Tensor
     """The antialias edge topology of ``faces``."""
+
+
+def skin(tables: LbsTables, params: FlameParams) -> tuple[torch.Tensor, torch.Tensor]:
+    """FLAME skinning of one frame with ``tables`` (identity baked in, :func:`head_tables`):
+    ``(verts (V, 3), rotations (V, 3, 3))``."""
+    skinned = lbs(
+        params.expr[None].contiguous(),
+        params.pose[None].contiguous(),
+        transl=params.transl[None].contiguous(),
+        **tables,
+    )
+    return skinned.verts[0], skinned.rotations[0]
 
 
 def head_tables(

@@ -30,9 +30,9 @@ import torch.nn.functional as F
 from urhead.config import KEEPABLE_PARTS, FitConfig
 from urhead.head import HeadModel
 from urhead.head.leave_out import region_faces
-from urhead.model.avatar import POSE_SIZE, flame_rows, head_tables
+from urhead.model.avatar import POSE_SIZE, FlameParams, flame_rows, head_tables, skin
 from urhead.model.build import subject_identity
-from urhead.ops import lbs, rasterize
+from urhead.ops import rasterize
 
 log = logging.getLogger("urhead.fit")
 
@@ -132,14 +132,8 @@ def analyse_scene(train, head: HeadModel, has_normals: bool) -> SceneMeasures:
     seen = torch.zeros(head.num_faces, dtype=torch.int64)
     open_frames, mouth_max, off_surface, mesh_pixels = 0, 0, [], 0
     for index in picks:
-        params = rows[int(index)]
         with torch.no_grad():
-            verts = lbs(
-                params[None, :num_expr].contiguous(),
-                params[None, num_expr : num_expr + POSE_SIZE].contiguous(),
-                transl=params[None, num_expr + POSE_SIZE :].contiguous(),
-                **tables.lbs,
-            ).verts[0]
+            verts, _ = skin(tables.lbs, FlameParams.from_row(rows[int(index)], num_expr))
         camera = train.records[int(index)].camera
         tri = rasterize(verts.contiguous(), tables.faces, camera).tri_id
         covered = tri >= 0
