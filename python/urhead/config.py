@@ -281,8 +281,12 @@ FIT_PRESETS: dict[str, dict] = {
         "lr_translation": 2e-5,
         # Gaussians leave the surface where the hair is: +0.7 dB in the mask, +0.8 full
         # image on the default subject (D itself at 1e-4 tore the mesh apart: kept at 1e-5).
+        # E at 4x the first rate and unregularised (the photometric and silhouette terms
+        # bound it): tracked / refined in the mask +0.07 / +0.19 dB on the default subject
+        # at 256², +0.20 / +0.32 on the hard one (strands); 5e-4 lost 0.1 / 0.06.
         "gaussian_offset": True,
-        "lr_offset": 5e-5,
+        "lr_offset": 2e-4,
+        "lambda_offset": 0.0,
         # The silhouette fitted directly (default subject at 256², with the walking
         # antialias: +0.13 dB tracked / +0.22 refined in the mask; 2.0 without the walk:
         # +0.39 / +0.68 against +0.30 / +0.46 for 0.5).
