@@ -287,10 +287,6 @@ FIT_PRESETS: dict[str, dict] = {
         "gaussian_offset": True,
         "lr_offset": 2e-4,
         "lambda_offset": 0.0,
-        # A stiffer Laplacian of D (10x): tracked / refined in the mask +0.04 / +0.10 dB on
-        # the default subject at 256², +0.07 / +0.09 on the hard one (30x: +0.06 / +0.11 on
-        # the default); the mesh branch alone loses 0.8 dB, the Gaussians carry the detail.
-        "lambda_laplacian": 10_000.0,
         # The silhouette fitted directly (default subject at 256², with the walking
         # antialias: +0.13 dB tracked / +0.22 refined in the mask; 2.0 without the walk:
         # +0.39 / +0.68 against +0.30 / +0.46 for 0.5).
