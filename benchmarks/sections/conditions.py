@@ -204,7 +204,8 @@ def render(results: dict, figures: Path) -> str:
     return "\n\n".join(
         [
             f"Synthetic subjects at {results['resolution']}², 300 frames (210 train, 90 held "
-            f"out), the quick preset ({quick['iterations']} iterations, 512² maps). PSNR in dB "
+            f"out), the quick preset ({quick['iterations']} iterations, "
+            f"{quick['uv_resolution']}² maps). PSNR in dB "
             "on the held-out frames: `psnr` inside the mask with the tracked FLAME parameters, "
             "`_full` on the whole image, `refined` after test-time refinement of each held-out "
             f"frame's FLAME row against the frozen avatar ({quick['refine_steps']} steps at "

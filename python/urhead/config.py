@@ -283,7 +283,7 @@ FIT_PRESETS: dict[str, dict] = {
         # image on the default subject (D itself at 1e-4 tore the mesh apart: kept at 1e-5).
         # E at 4x the first rate and unregularised (the photometric and silhouette terms
         # bound it): tracked / refined in the mask +0.07 / +0.19 dB on the default subject
-        # at 256², +0.20 / +0.32 on the hard one (strands); 5e-4 lost 0.1 / 0.06.
+        # at 256², +0.20 / +0.32 on the hard one (strands); 5e-4 scored 0.10 / 0.06 below 5e-5.
         "gaussian_offset": True,
         "lr_offset": 2e-4,
         "lambda_offset": 0.0,
