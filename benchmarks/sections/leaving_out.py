@@ -146,7 +146,9 @@ def run(quick: bool) -> dict:
         costs = _costs(names)
         for fit in fits:
             fit.update(costs[fit["name"]])
-        return {"subject": asdict(SUBJECT), "fits": fits, "load_average": load}
+        quick = FIT_PRESETS["quick"]
+        preset = {k: quick[k] for k in ("iterations", "uv_resolution")}
+        return {"subject": asdict(SUBJECT), "preset": preset, "fits": fits, "load_average": load}
     finally:
         torch.set_num_threads(torch_threads)
 
@@ -173,12 +175,13 @@ def render(results: dict, figures: Path) -> str:
                 f"{fit['seconds']:.0f}",
             ]
         )
-    s = results["subject"]
+    s, preset = results["subject"], results["preset"]
     return "\n\n".join(
         [
             f"Subject: `urhead synth --mouth closed --gaze fixed --hair none` at "
             f"{s['resolution']}², {s['frames']} frames (210 train, 90 held out), soft light, "
-            "~1 px tracking error; fits: `--preset quick` (512² maps, 1800 iterations). Each "
+            f"~1 px tracking error; fits: `--preset quick` ({preset['uv_resolution']}² maps, "
+            f"{preset['iterations']} iterations). Each "
             "`--keep` row forces one part back into the scene-analysis fit. ms / iteration: CPU "
             f"time (one thread), median of {TIMING_BLOCKS} alternating blocks of "
             f"{TIMING_STEPS} steps per model from a fresh model (no sampling rounds); maps + "
