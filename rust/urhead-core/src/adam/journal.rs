@@ -2,9 +2,11 @@
 //! that changed it since the journal was last cleared, so a caller that finds a step (or a
 //! run of steps) bad can put the table back exactly.
 //!
-//! Rows are saved by the step itself, just before it writes them, so a journal costs one
-//! copy per distinct row per window (not per step) and never a second table. Its buffers
-//! keep their capacity across `clear`s.
+//! Rows are saved by the step itself, in its own pass, just before it writes them (the row
+//! is in cache then), so a journal costs one copy per distinct row per window (not per
+//! step) and never a second table. Its buffers keep their capacity across `clear`s.
+
+use std::mem::MaybeUninit;
 
 use super::SparseAdamState;
 use crate::error::{check_len, Error, Result};
@@ -77,20 +79,53 @@ impl RowJournal {
         Ok(())
     }
 
-    /// Saves the rows of `rows` not saved yet, as they are in `state` now.
-    pub(super) fn save(&mut self, state: &SparseAdamState<'_>, rows: &[i64]) {
+    /// Marks the rows of `rows` not saved since the last clear as saved and returns which
+    /// of `rows` they are, with free space for their values: the step writes each one's
+    /// row into its slot before changing it, then [`RowJournal::commit`] counts them in.
+    pub(super) fn reserve(&mut self, rows: &[i64]) -> Result<(Vec<bool>, SaveSlots<'_>)> {
+        let new: Vec<bool> = rows
+            .iter()
+            .map(|&row| !std::mem::replace(&mut self.saved[row as usize], true))
+            .collect();
+        let count = new.iter().filter(|&&n| n).count();
         let c = self.channels;
-        for &row in rows {
-            let r = row as usize;
-            if std::mem::replace(&mut self.saved[r], true) {
-                continue;
-            }
-            self.rows.push(row);
-            self.param.extend_from_slice(&state.param[r * c..(r + 1) * c]);
-            self.exp_avg.extend_from_slice(&state.exp_avg[r * c..(r + 1) * c]);
-            self.exp_avg_sq
-                .extend_from_slice(&state.exp_avg_sq[r * c..(r + 1) * c]);
-            self.steps.push(state.steps[r]);
+        let too_large = |what| Error::OutOfMemory {
+            what,
+            elements: count * c,
+            bytes: (count * c) as u128 * 4,
+        };
+        self.rows
+            .try_reserve(count)
+            .map_err(|_| too_large("journal rows"))?;
+        self.rows
+            .extend(rows.iter().zip(&new).filter(|(_, &n)| n).map(|(&r, _)| r));
+        for table in [&mut self.param, &mut self.exp_avg, &mut self.exp_avg_sq] {
+            table.try_reserve(count * c).map_err(|_| too_large("journal"))?;
+        }
+        self.steps
+            .try_reserve(count)
+            .map_err(|_| too_large("journal steps"))?;
+        let slots = SaveSlots {
+            param: &mut self.param.spare_capacity_mut()[..count * c],
+            exp_avg: &mut self.exp_avg.spare_capacity_mut()[..count * c],
+            exp_avg_sq: &mut self.exp_avg_sq.spare_capacity_mut()[..count * c],
+            steps: &mut self.steps.spare_capacity_mut()[..count],
+        };
+        Ok((new, slots))
+    }
+
+    /// Counts in the `count` rows [`RowJournal::reserve`] handed out, once all are written.
+    ///
+    /// # Safety
+    /// The first `count` slots of each table the last `reserve` returned are initialised.
+    pub(super) unsafe fn commit(&mut self, count: usize) {
+        let c = self.channels;
+        // SAFETY: the caller wrote those slots, which lie within the reserved capacity.
+        unsafe {
+            self.param.set_len(self.param.len() + count * c);
+            self.exp_avg.set_len(self.exp_avg.len() + count * c);
+            self.exp_avg_sq.set_len(self.exp_avg_sq.len() + count * c);
+            self.steps.set_len(self.steps.len() + count);
         }
     }
 
@@ -126,5 +161,47 @@ impl RowJournal {
             state.steps[r] = self.steps[k];
         }
         Ok(())
+    }
+}
+
+/// Free space for rows a step saves: `(K, C)` parameters and moments, `(K,)` step counts.
+pub(super) struct SaveSlots<'a> {
+    pub param: &'a mut [MaybeUninit<f32>],
+    pub exp_avg: &'a mut [MaybeUninit<f32>],
+    pub exp_avg_sq: &'a mut [MaybeUninit<f32>],
+    pub steps: &'a mut [MaybeUninit<i32>],
+}
+
+impl<'a> SaveSlots<'a> {
+    /// Splits off the first `rows` rows' slots.
+    pub fn split_off_front(&mut self, rows: usize, channels: usize) -> SaveSlots<'a> {
+        let take = |t: &mut &'a mut [MaybeUninit<f32>]| {
+            let (head, tail) = std::mem::take(t).split_at_mut(rows * channels);
+            *t = tail;
+            head
+        };
+        let (steps, tail) = std::mem::take(&mut self.steps).split_at_mut(rows);
+        self.steps = tail;
+        SaveSlots {
+            param: take(&mut self.param),
+            exp_avg: take(&mut self.exp_avg),
+            exp_avg_sq: take(&mut self.exp_avg_sq),
+            steps,
+        }
+    }
+
+    /// Writes one row into slot `k`.
+    pub fn write(&mut self, k: usize, param: &[f32], exp_avg: &[f32], exp_avg_sq: &[f32], steps: i32) {
+        let c = param.len();
+        for (slots, row) in [
+            (&mut *self.param, param),
+            (&mut *self.exp_avg, exp_avg),
+            (&mut *self.exp_avg_sq, exp_avg_sq),
+        ] {
+            for (slot, &x) in slots[k * c..(k + 1) * c].iter_mut().zip(row) {
+                slot.write(x);
+            }
+        }
+        self.steps[k].write(steps);
     }
 }

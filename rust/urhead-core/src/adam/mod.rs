@@ -23,6 +23,7 @@ mod journal;
 use rayon::prelude::*;
 
 pub use journal::RowJournal;
+use journal::SaveSlots;
 
 use crate::error::{check_len, Error, Result};
 
@@ -83,6 +84,8 @@ pub struct StepReport {
     /// `(C,)` each channel's largest gradient magnitude over the step's rows; +∞ for a
     /// channel with a NaN or infinite entry, 0 for no rows.
     pub peaks: Vec<f32>,
+    /// Rows saved into the journal by this step (first changed since its last clear).
+    pub saved_rows: usize,
 }
 
 /// One sparse step. `rows (K,)` must be strictly increasing row indices (a coalesced
@@ -148,10 +151,20 @@ pub fn sparse_adam_step(
             });
         }
     }
-    if let Some(journal) = journal {
-        journal.check(state)?;
-        journal.save(state, rows);
-    }
+    let mut saving = match journal {
+        Some(journal) => {
+            journal.check(state)?;
+            Some(journal)
+        }
+        None => None,
+    };
+    let (new_rows, mut slots) = match saving.as_deref_mut() {
+        Some(journal) => {
+            let (new, slots) = journal.reserve(rows)?;
+            (new, Some(slots))
+        }
+        None => (Vec::new(), None),
+    };
 
     // Rows are strictly increasing, so each chunk of `rows` owns a disjoint, ordered set
     // of table rows; split the tables at the chunk boundaries to hand them out safely.
@@ -170,63 +183,141 @@ pub fn sparse_adam_step(
         let (m_head, m_tail) = std::mem::take(&mut m).split_at_mut(split * c);
         let (v_head, v_tail) = std::mem::take(&mut v).split_at_mut(split * c);
         let (s_head, s_tail) = std::mem::take(&mut steps).split_at_mut(split);
-        work.push((k, offset, chunk, p_head, m_head, v_head, s_head));
+        let saves = slots.as_mut().map(|slots| {
+            let new = &new_rows[k * ROW_CHUNK..k * ROW_CHUNK + chunk.len()];
+            (new, slots.split_off_front(new.iter().filter(|&&n| n).count(), c))
+        });
+        work.push((k, offset, chunk, p_head, m_head, v_head, s_head, saves));
         (param, m, v, steps) = (p_tail, m_tail, v_tail, s_tail);
         offset = end;
     }
-    let chunk_reports = work.into_par_iter().map(|(k, base, chunk, p, m, v, s)| {
-        let mut report = StepReport {
-            rejected_rows: 0,
-            non_finite_rows: 0,
-            peaks: vec![0.0; c],
-        };
-        for (i, &row) in chunk.iter().enumerate() {
-            let g = &grads[(k * ROW_CHUNK + i) * c..(k * ROW_CHUNK + i + 1) * c];
-            // f32::max maps a NaN entry to the other operand: non-finite rows set +∞ below.
-            for (peak, x) in report.peaks.iter_mut().zip(g) {
-                *peak = peak.max(x.abs());
-            }
-            if g.iter().any(|x| !x.is_finite()) {
-                for (peak, x) in report.peaks.iter_mut().zip(g) {
-                    if !x.is_finite() {
-                        *peak = f32::INFINITY;
-                    }
-                }
-                report.rejected_rows += 1;
-                continue;
-            }
-            let local = row as usize - base;
-            let t = s[local].saturating_add(1);
-            s[local] = t;
-            let (p, m, v) = (
-                &mut p[local * c..(local + 1) * c],
-                &mut m[local * c..(local + 1) * c],
-                &mut v[local * c..(local + 1) * c],
-            );
-            if g.iter().all(|x| x.abs() <= F32_SAFE_GRAD) {
-                update_row_f32(p, m, v, g, lr, t, config);
-            } else {
-                update_row_f64(p, m, v, g, lr, t, config);
-            }
-            if !p.iter().chain(m.iter()).chain(v.iter()).all(|x| x.is_finite()) {
-                report.non_finite_rows += 1;
-            }
-        }
-        report
+    let chunk_reports = work.into_par_iter().map(|(k, base, chunk, p, m, v, s, saves)| {
+        let grads = &grads[k * ROW_CHUNK * c..(k * ROW_CHUNK + chunk.len()) * c];
+        step_chunk(chunk, base, p, m, v, s, saves, grads, lr, config)
     });
     let empty = || StepReport {
         rejected_rows: 0,
         non_finite_rows: 0,
         peaks: vec![0.0; c],
+        saved_rows: 0,
     };
-    Ok(chunk_reports.reduce(empty, |mut a, b| {
+    let report = chunk_reports.reduce(empty, |mut a, b| {
         a.rejected_rows += b.rejected_rows;
         a.non_finite_rows += b.non_finite_rows;
+        a.saved_rows += b.saved_rows;
         for (x, y) in a.peaks.iter_mut().zip(&b.peaks) {
             *x = x.max(*y);
         }
         a
-    }))
+    });
+    if let Some(journal) = saving {
+        let reserved = new_rows.iter().filter(|&&n| n).count();
+        assert_eq!(
+            report.saved_rows, reserved,
+            "every reserved journal slot is written"
+        );
+        // SAFETY: each chunk wrote one slot per new row of its own, and the chunks' slot
+        // ranges partition the reserved ones in order; the counts agree (asserted).
+        unsafe { journal.commit(reserved) };
+    }
+    Ok(report)
+}
+
+/// Rows ahead of the one being updated whose table lines are prefetched. Touched rows are
+/// sorted but scattered over the atlas (at 2048² about half are not adjacent to the last),
+/// so without it each row stalls on its ~11 cache misses in turn (measured on the paper's
+/// iteration's 348k rows: 160 → ~90 ms on one thread).
+const PREFETCH_ROWS: usize = 16;
+
+/// One chunk's rows: `chunk` holds table rows (strictly increasing, all ≥ `base`), the
+/// tables are views starting at row `base`, `grads` is `(chunk.len(), C)`. With `saves`,
+/// the rows flagged new are written, as they are before this step, into the slots in order.
+fn step_chunk(
+    chunk: &[i64],
+    base: usize,
+    p: &mut [f32],
+    m: &mut [f32],
+    v: &mut [f32],
+    s: &mut [i32],
+    mut saves: Option<(&[bool], SaveSlots<'_>)>,
+    grads: &[f32],
+    lr: &[f32],
+    config: &AdamConfig,
+) -> StepReport {
+    let c = lr.len();
+    let mut report = StepReport {
+        rejected_rows: 0,
+        non_finite_rows: 0,
+        peaks: vec![0.0; c],
+        saved_rows: 0,
+    };
+    for (i, (&row, g)) in chunk.iter().zip(grads.chunks_exact(c)).enumerate() {
+        if let Some(&ahead) = chunk.get(i + PREFETCH_ROWS) {
+            let r = ahead as usize - base;
+            for table in [&*p, &*m, &*v] {
+                prefetch(&table[r * c..(r + 1) * c]);
+            }
+            prefetch(&s[r..r + 1]);
+        }
+        let local = row as usize - base;
+        let rows = local * c..(local + 1) * c;
+        if let Some((new, slots)) = saves.as_mut() {
+            if new[i] {
+                let (p, m, v) = (&p[rows.clone()], &m[rows.clone()], &v[rows.clone()]);
+                slots.write(report.saved_rows, p, m, v, s[local]);
+                report.saved_rows += 1;
+            }
+        }
+        // One pass: each channel's peak, and whether every entry is small enough for the
+        // f32 update (false for NaN and ±∞ too). f32::max maps NaN to the other operand.
+        let mut small = true;
+        for (peak, x) in report.peaks.iter_mut().zip(g) {
+            *peak = peak.max(x.abs());
+            small &= x.abs() <= F32_SAFE_GRAD;
+        }
+        if !small && g.iter().any(|x| !x.is_finite()) {
+            for (peak, x) in report.peaks.iter_mut().zip(g) {
+                if !x.is_finite() {
+                    *peak = f32::INFINITY;
+                }
+            }
+            report.rejected_rows += 1;
+            continue;
+        }
+        let t = s[local].saturating_add(1);
+        s[local] = t;
+        let (p, m, v) = (&mut p[rows.clone()], &mut m[rows.clone()], &mut v[rows]);
+        let finite = if small {
+            update_row_f32(p, m, v, g, lr, t, config)
+        } else {
+            update_row_f64(p, m, v, g, lr, t, config);
+            p.iter().chain(m.iter()).chain(v.iter()).all(|x| x.is_finite())
+        };
+        if !finite {
+            report.non_finite_rows += 1;
+        }
+    }
+    report
+}
+
+/// Asks the CPU to start loading the cache lines of `data` (x86-64; nothing elsewhere).
+#[inline(always)]
+fn prefetch<T>(data: &[T]) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+        let start = data.as_ptr() as usize;
+        let end = start + std::mem::size_of_val(data);
+        let mut line = start & !63;
+        while line < end {
+            // SAFETY: a prefetch is a hint that never faults or changes memory; `line`
+            // is an address within a cache line that `data` occupies.
+            unsafe { _mm_prefetch::<_MM_HINT_T0>(line as *const i8) };
+            line += 64;
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = data;
 }
 
 /// Gradients up to this magnitude square safely in f32 (g² ≤ 1e36 < f32::MAX).
@@ -241,21 +332,25 @@ fn update_row_f32(
     lr: &[f32],
     t: i32,
     config: &AdamConfig,
-) {
+) -> bool {
     // 1 − β in f64 first: 1 − 0.999f32 is off by 1.3e-5 relative in f32.
     let (b1, b2) = (config.beta1 as f32, config.beta2 as f32);
     let (one_minus_b1, one_minus_b2) = ((1.0 - config.beta1) as f32, (1.0 - config.beta2) as f32);
     let inv_correction1 = (1.0 / (1.0 - config.beta1.powi(t))) as f32;
     let inv_sqrt_correction2 = (1.0 / (1.0 - config.beta2.powi(t)).sqrt()) as f32;
     let (eps, bound) = (config.eps as f32, config.step_bound() as f32);
-    for ch in 0..g.len() {
-        let mi = b1 * m[ch] + one_minus_b1 * g[ch];
-        let vi = b2 * v[ch] + one_minus_b2 * g[ch] * g[ch];
+    // |x| < ∞ is false for NaN and ±∞: the row's finiteness, in the update's own pass.
+    let mut finite = true;
+    for ((((p, m), v), &g), &lr) in p.iter_mut().zip(m).zip(v).zip(g).zip(lr) {
+        let mi = b1 * *m + one_minus_b1 * g;
+        let vi = b2 * *v + one_minus_b2 * g * g;
         let step = (mi * inv_correction1) / (vi.sqrt() * inv_sqrt_correction2 + eps);
-        m[ch] = mi;
-        v[ch] = vi;
-        p[ch] -= step.clamp(-bound, bound) * lr[ch];
+        *m = mi;
+        *v = vi;
+        *p -= step.clamp(-bound, bound) * lr;
+        finite &= (mi.abs() < f32::INFINITY) & (vi < f32::INFINITY) & (p.abs() < f32::INFINITY);
     }
+    finite
 }
 
 /// Rows with huge gradients, in f64 so g² cannot overflow; the second moment saturates
@@ -372,6 +467,79 @@ mod tests {
         assert_eq!(journal.len(), 4); // rows 1, 4, 0, 5, each saved once
         journal.restore(&mut st).unwrap();
         assert_eq!((p, m, v, s), before);
+    }
+
+    /// Steps over many chunks of scattered rows, rows shared between steps, a rejected
+    /// row among them: the journal saves each row once, in the order the steps first
+    /// reached it, restores the table bit for bit, and tables and journal are the same on
+    /// 1, 2 and 5 threads.
+    #[test]
+    fn a_journal_over_many_chunks_restores_bit_for_bit_on_any_thread_count() {
+        use crate::testing::Rng;
+        let (n, c) = (5000, 7);
+        let mut rng = Rng::new(3);
+        let step_rows: Vec<Vec<i64>> = (0..3)
+            .map(|_| {
+                let mut rows: Vec<i64> = (0..n as i64).filter(|_| rng.next_u64() % 3 == 0).collect();
+                rows.dedup();
+                rows
+            })
+            .collect();
+        let step_grads: Vec<Vec<f32>> = step_rows
+            .iter()
+            .map(|rows| {
+                let mut g = rng.vec::<f32>(rows.len() * c, -1.0, 1.0);
+                g[40 * c + 2] = f32::NAN;
+                g
+            })
+            .collect();
+        let run = |threads: usize| {
+            let (mut p, mut m, mut v, mut s) = state(n, c);
+            let before = (p.clone(), m.clone(), v.clone(), s.clone());
+            let mut journal = RowJournal::new(n, c);
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            let mut st = SparseAdamState {
+                param: &mut p,
+                exp_avg: &mut m,
+                exp_avg_sq: &mut v,
+                steps: &mut s,
+                channels: c,
+            };
+            let mut saved = Vec::new();
+            for (rows, grads) in step_rows.iter().zip(&step_grads) {
+                let report = pool
+                    .install(|| {
+                        sparse_adam_step(&mut st, rows, grads, &[0.1; 7], &CONFIG, Some(&mut journal))
+                    })
+                    .unwrap();
+                assert_eq!(report.rejected_rows, 1);
+                saved.push(report.saved_rows);
+            }
+            let after = (
+                st.param.to_vec(),
+                st.exp_avg.to_vec(),
+                st.exp_avg_sq.to_vec(),
+                st.steps.to_vec(),
+            );
+            journal.restore(&mut st).unwrap();
+            assert_eq!((p, m, v, s), before);
+            (after, saved, journal)
+        };
+        let (after, saved, journal) = run(1);
+        let mut union: Vec<i64> = step_rows.concat();
+        union.sort_unstable();
+        union.dedup();
+        assert_eq!(journal.len(), union.len());
+        assert_eq!(saved[0], step_rows[0].len());
+        assert_eq!(saved.iter().sum::<usize>(), union.len());
+        for threads in [2, 5] {
+            let (after_t, saved_t, journal_t) = run(threads);
+            assert!(after_t == after && saved_t == saved, "{threads} threads differ");
+            assert_eq!(format!("{journal_t:?}"), format!("{journal:?}"));
+        }
     }
 
     #[test]
