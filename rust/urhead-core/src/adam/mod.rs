@@ -26,6 +26,7 @@ pub use journal::RowJournal;
 use journal::SaveSlots;
 
 use crate::error::{check_len, Error, Result};
+use crate::memory::prefetch;
 
 /// Rows handled per parallel work item.
 const ROW_CHUNK: usize = 256;
@@ -298,26 +299,6 @@ fn step_chunk(
         }
     }
     report
-}
-
-/// Asks the CPU to start loading the cache lines of `data` (x86-64; nothing elsewhere).
-#[inline(always)]
-fn prefetch<T>(data: &[T]) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-        let start = data.as_ptr() as usize;
-        let end = start + std::mem::size_of_val(data);
-        let mut line = start & !63;
-        while line < end {
-            // SAFETY: a prefetch is a hint that never faults or changes memory; `line`
-            // is an address within a cache line that `data` occupies.
-            unsafe { _mm_prefetch::<_MM_HINT_T0>(line as *const i8) };
-            line += 64;
-        }
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = data;
 }
 
 /// Gradients up to this magnitude square safely in f32 (g² ≤ 1e36 < f32::MAX).
