@@ -192,8 +192,10 @@ def test_render_frames_and_orbit(use, tmp_path):
     avatar = load_avatar(use.avatar_dir)
     with torch.no_grad():
         image = avatar.render(avatar.frame(0), subject.train[0].camera).image.clamp(0, 1)
-    expected = (image.numpy()[..., ::-1] * 255 + 0.5).astype(np.uint8)
-    assert np.array_equal(views[0][bar:, :64], expected)
+    # Equal up to the PNG's 8-bit rounding: a value on a rounding tie (x·255 = k + 0.5)
+    # may round either way after a 1-ulp difference in the camera's arithmetic.
+    expected = image.numpy()[..., ::-1].astype(np.float64) * 255
+    assert np.abs(views[0][bar:, :64] - expected).max() <= 0.5 + 1e-3
     assert not np.array_equal(views[0][bar:], views[3][bar:])  # the view turns
 
 
