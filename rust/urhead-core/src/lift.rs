@@ -189,7 +189,6 @@ impl<T: Real> LiftInputs<'_, T> {
         let (normal, length) = normalise(matvec(&frame, &rest));
         Posed {
             frame,
-            rest,
             normal,
             length,
             quat: Quat::of(normal),
@@ -200,7 +199,6 @@ impl<T: Real> LiftInputs<'_, T> {
 /// One Gaussian's posed normal and what its adjoint needs.
 struct Posed<T> {
     frame: M3<T>,
-    rest: V3<T>,
     /// n̂ = frame·rest / length.
     normal: V3<T>,
     /// |frame·rest| (may be below the floor).
@@ -409,20 +407,22 @@ pub fn lift_backward<T: Real>(
     if let Some(g) = grads.v_quats {
         check_len("v_quats", g, n * 4, &layout("(N, 4)"))?;
     }
-    // Per Gaussian: ∂L/∂frame (N, 3, 3), ∂L/∂rest normal (N, 3), ∂L/∂lift (N,).
+    // Per Gaussian: ∂L/∂m (N, 3) for the posed normal before normalising, m = frame·rest
+    // (∂L/∂frame = ∂L/∂m ⊗ rest is formed in the vertex gather, not stored: a third of
+    // the memory), ∂L/∂rest normal (N, 3), ∂L/∂lift (N,).
     let per_gaussian = needs.rotations || needs.normals || needs.lift;
     let size = |len: usize| if per_gaussian { len } else { 0 };
-    let mut v_frames = zeroed("lift frame gradient", size(n * 9))?;
+    let mut v_posed = zeroed("lift posed-normal gradient", size(n * 3))?;
     let mut v_normals = zeroed("lift normal gradient", size(n * 3))?;
     let mut v_lift = zeroed("lift gradient", size(n))?;
     (
-        v_frames.par_chunks_mut(CHUNK * 9),
+        v_posed.par_chunks_mut(CHUNK * 3),
         v_normals.par_chunks_mut(CHUNK * 3),
         v_lift.par_chunks_mut(CHUNK),
     )
         .into_par_iter()
         .enumerate()
-        .for_each(|(c, (v_frame, v_rest, v_lift))| {
+        .for_each(|(c, (v_m, v_rest, v_lift))| {
             for j in 0..v_lift.len() {
                 let i = c * CHUNK + j;
                 let v_mean: V3<T> = row(grads.v_means, i);
@@ -443,13 +443,9 @@ pub fn lift_backward<T: Real>(
                 if v_normal.iter().all(|&g| g == zero) {
                     continue;
                 }
-                let v_posed = normalise_backward(&p.normal, p.length, &v_normal);
-                v_rest[3 * j..3 * j + 3].copy_from_slice(&matvec_t(&p.frame, &v_posed));
-                for r in 0..3 {
-                    for k in 0..3 {
-                        v_frame[9 * j + 3 * r + k] = v_posed[r] * p.rest[k];
-                    }
-                }
+                let g = normalise_backward(&p.normal, p.length, &v_normal);
+                v_rest[3 * j..3 * j + 3].copy_from_slice(&matvec_t(&p.frame, &g));
+                v_m[3 * j..3 * j + 3].copy_from_slice(&g);
             }
         });
     let v_means = grads.v_means.filter(|_| needs.verts);
@@ -457,7 +453,7 @@ pub fn lift_backward<T: Real>(
         let corners = corners_by_vertex(inputs.face_verts, v)?;
         let mut v_verts = zeroed("vertex gradient", v * 3)?;
         let mut v_rotations = zeroed("rotation gradient", v * 9)?;
-        let (bary, v_frames) = (inputs.bary, &v_frames);
+        let (bary, rest, v_posed) = (inputs.bary, inputs.normals, &v_posed);
         (
             v_verts.par_chunks_mut(VERTEX_CHUNK * 3),
             v_rotations.par_chunks_mut(VERTEX_CHUNK * 9),
@@ -471,7 +467,7 @@ pub fn lift_backward<T: Real>(
                         dv[3 * j..3 * j + 3].copy_from_slice(&gather::<T, 3>(list, bary, g));
                     }
                     if needs.rotations {
-                        dr[9 * j..9 * j + 9].copy_from_slice(&gather::<T, 9>(list, bary, v_frames));
+                        dr[9 * j..9 * j + 9].copy_from_slice(&gather_outer(list, bary, v_posed, rest));
                     }
                 }
             });
@@ -488,6 +484,27 @@ pub fn lift_backward<T: Real>(
         v_normals: needs.normals.then_some(v_normals),
         v_lift: needs.lift.then_some(v_lift),
     })
+}
+
+/// Σ over a vertex's corners `e = 3·g + k` of `bary[e]·(a[g] ⊗ b[g])` (3 × 3, row-major),
+/// in list order; rows with `a[g] = 0` are skipped.
+#[inline(always)]
+fn gather_outer<T: Real>(corners: &[u32], bary: &[T], a: &[T], b: &[T]) -> [T; 9] {
+    let mut acc = [T::zero(); 9];
+    for &e in corners {
+        let (w, g) = (bary[e as usize], e as usize / 3);
+        let row = &a[3 * g..3 * g + 3];
+        if row.iter().all(|&x| x == T::zero()) {
+            continue; // no gradient: skipped, so a non-finite `b` row adds no 0·NaN
+        }
+        for r in 0..3 {
+            let wa = w * row[r];
+            for k in 0..3 {
+                acc[3 * r + k] += wa * b[3 * g + k];
+            }
+        }
+    }
+    acc
 }
 
 /// Σ over a vertex's corners `e = 3·g + k` of `bary[e]·rows[g]`, in list order.
