@@ -27,7 +27,7 @@ from urhead.ops import (
     antialias_topology,
     interpolate,
     lbs,
-    normal_to_quat,
+    lift_gaussians_geometry,
     rasterize,
     rasterize_gaussians,
     sh_shade,
@@ -185,6 +185,7 @@ class Avatar:
     depth_eps: float = 0.01
     _tables: HeadTables | None = field(default=None, init=False, repr=False)
     _rays: PixelRays = field(default_factory=PixelRays, init=False, repr=False)
+    _face_verts: tuple | None = field(default=None, init=False, repr=False)
 
     @property
     def num_expr(self) -> int:
@@ -298,7 +299,8 @@ class Avatar:
         rot_image = interpolate(rotations.reshape(-1, 9), raster, t.faces)
         pixel_rot = rot_image.reshape(-1, 9)[pixels].reshape(-1, 3, 3)
         rays = self._rays(camera)[pixels]
-        rgb = self._sh_color(rows, rays, pixel_rot.detach(), sh_degree)
+        rotation = pixel_rot.detach()
+        rgb = self._sh_color(rows, _rest_frame_dirs(rays, rotation), rotation, sh_degree)
         background = torch.cat([self.background, self.background.new_zeros(1)])
         flat = background.expand(h * w, 4).clone()
         flat = flat.index_put((pixels,), torch.cat([rgb, rgb.new_ones(rgb.shape[0], 1)], 1))
@@ -321,32 +323,43 @@ class Avatar:
     def lift_gaussians(self, verts, rotations, camera, gather=None, sh_degree=None) -> GaussianLift:
         """Each Gaussian's attributes from its UV point: position P + D·n on the posed
         surface (P + (D + E)·n with the offset map E), rotation from the posed normal,
-        scale, opacity and colour from the maps."""
+        scale, opacity and colour from the maps. The geometry is one kernel
+        (:func:`~urhead.ops.lift_gaussians_geometry`)."""
         layout = self.layout
-        face_verts = self.tables().faces_long[self.gaussian_face]  # (N, 3)
-        bary = self.gaussian_bary[:, :, None]
-        surface = (verts[face_verts] * bary).sum(1)
-        frames = (rotations[face_verts] * bary[..., None]).sum(1)
         rows = self.lookup(self.gaussian_uv, gather)
         samples = layout.split(rows)
-        normal = _rotate_normalize(frames, samples.normal)
         lift = samples.displacement
         if samples.offset is not None:
             lift = lift + samples.offset
-        means = surface + lift[:, None] * normal
-        sh = samples.color.reshape(-1, layout.sh_coeffs, 3)
-        rays = means.detach() - camera.center
-        rays = rays / rays.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        geometry = lift_gaussians_geometry(
+            verts,
+            rotations,
+            self.gaussian_face_verts(),
+            self.gaussian_bary,
+            samples.normal,
+            lift,
+            camera.center,
+        )
         return GaussianLift(
-            means=means,
-            quats=normal_to_quat(normal),
+            means=geometry.means,
+            quats=geometry.quats,
             scales=samples.scale.exp(),
             opacities=torch.sigmoid(samples.opacity),
-            colors=self._sh_color(rows, rays, frames.detach(), sh_degree),
-            sh=sh,
-            frames=frames.detach(),
+            colors=self._sh_color(rows, geometry.view_dirs, geometry.frames, sh_degree),
+            sh=samples.color.reshape(-1, layout.sh_coeffs, 3),
+            frames=geometry.frames,
             offset=samples.offset,
         )
+
+    def gaussian_face_verts(self) -> torch.Tensor:
+        """(N, 3) int32 vertex ids of each Gaussian's face, built once per
+        ``gaussian_face`` (rebuilt when the sampler replaces or edits it)."""
+        face = self.gaussian_face
+        cached = self._face_verts
+        if cached is None or cached[0] is not face or cached[1] != face._version:
+            ids = self.tables().faces[face].contiguous()
+            self._face_verts = cached = (face, face._version, ids)
+        return cached[2]
 
     def splat(self, lift: GaussianLift, camera, depth_map) -> GaussianRender:
         """Occlusion-aware splatting of lifted Gaussians (no occlusion with ``depth_map``
@@ -363,15 +376,14 @@ class Avatar:
         )
         return GaussianRender(out.image, out.transmittance, out.radii, lift)
 
-    def _sh_color(self, rows, rays, rotation, sh_degree: int | None = None):
-        """(P, 3) colours from map-sample rows (P, channels) seen along world rays
-        (P, 3), with the view direction taken in the surface's rest frame (``rotation``
-        (P, 3, 3) the skinning rotation, undone): view-dependent colour then follows the
-        surface as the head moves, and with a fixed camera it can absorb shading that
-        changes with the head's rotation. With shading maps A the colour is scaled by
-        1 + Σ A_ij (R − I)_ij: light fixed in the room, to first order in the rotation."""
-        local = (rays[:, :, None] * rotation).sum(1)  # Rᵀ·ray
-        local = local / local.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    def _sh_color(self, rows, local, rotation, sh_degree: int | None = None):
+        """(P, 3) colours from map-sample rows (P, channels) seen along the unit view
+        directions ``local`` (P, 3) taken into the surface's rest frame
+        (:func:`_rest_frame_dirs`: the world ray with ``rotation`` (P, 3, 3), the skinning
+        rotation, undone): view-dependent colour then follows the surface as the head
+        moves, and with a fixed camera it can absorb shading that changes with the head's
+        rotation. With shading maps A the colour is scaled by 1 + Σ A_ij (R − I)_ij: light
+        fixed in the room, to first order in the rotation."""
         top = self.layout.sh_degree
         rgb = sh_shade(rows, local, top if sh_degree is None else min(sh_degree, top))
         if not self.layout.shading:
@@ -379,6 +391,13 @@ class Avatar:
         features = (rotation - torch.eye(3, dtype=rotation.dtype)).reshape(-1, 9)
         gain = 1 + (rows[:, self.layout.shading_maps] * features).sum(-1)
         return rgb * gain[:, None]
+
+
+def _rest_frame_dirs(rays: torch.Tensor, rotation: torch.Tensor) -> torch.Tensor:
+    """(P, 3) unit world rays taken into the rest frame by (P, 3, 3) rotations:
+    ``normalise(Rᵀ·ray)``."""
+    local = (rays[:, :, None] * rotation).sum(1)  # Rᵀ·ray
+    return local / local.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 
 def _rotate_normalize(rotations: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:

@@ -5,6 +5,7 @@ tests live in :mod:`urhead.ops._reference`."""
 from urhead.ops.antialias import antialias, antialias_topology
 from urhead.ops.interpolate import interpolate
 from urhead.ops.lbs import LbsOutput, lbs
+from urhead.ops.lift import LiftOutput, lift_gaussians_geometry
 from urhead.ops.rasterize import RasterOutput, UvRasterOutput, rasterize, rasterize_uv
 from urhead.ops.shading import sh_shade
 from urhead.ops.splat import SplatOutput, normal_to_quat, rasterize_gaussians
@@ -13,6 +14,7 @@ from urhead.ops.texture import TextureGather, texture
 
 __all__ = [
     "LbsOutput",
+    "LiftOutput",
     "RasterOutput",
     "SplatOutput",
     "TextureGather",
@@ -21,6 +23,7 @@ __all__ = [
     "antialias_topology",
     "interpolate",
     "lbs",
+    "lift_gaussians_geometry",
     "masked_l1",
     "masked_ssim",
     "normal_to_quat",

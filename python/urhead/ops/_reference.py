@@ -647,3 +647,26 @@ def sh_shade(coeffs, dirs, degree):
     sh = coeffs[:, : 3 * k].reshape(-1, k, 3)
     basis = sh_basis(dirs, degree)
     return ((basis[:, :, None] * sh).sum(1) + 0.5).clamp_min(0.0)
+
+
+def normalize_clamped(v: torch.Tensor) -> torch.Tensor:
+    """(..., 3) vectors over ``max(|v|, 1e-12)``: zero stays zero."""
+    return v / v.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+
+def lift_gaussians_geometry(verts, rotations, face_verts, bary, normals, lift, centre):
+    """Reference of :func:`urhead.ops.lift_gaussians_geometry` — the plain-torch lift the
+    avatar used before the kernel: ``(means, normals, quats, frames, view_dirs)``. Its
+    ``|m|`` overflows where ``m²`` does (float32 normals beyond ~1.8e19, giving a zero
+    normal); the kernel's does not."""
+    from urhead.ops.splat import normal_to_quat
+
+    face_verts = face_verts.long()
+    weights = bary[:, :, None]
+    surface = (verts[face_verts] * weights).sum(1)
+    frames = (rotations[face_verts] * weights[..., None]).sum(1)
+    normal = normalize_clamped((frames * normals[:, None, :]).sum(-1))
+    means = surface + lift[:, None] * normal
+    rays = normalize_clamped(means.detach() - centre)
+    view_dirs = normalize_clamped((rays[:, :, None] * frames.detach()).sum(1))
+    return means, normal, normal_to_quat(normal), frames.detach(), view_dirs

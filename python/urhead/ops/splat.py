@@ -318,10 +318,12 @@ def normal_to_quat(normals: torch.Tensor) -> torch.Tensor:
     up = nz >= 0
     one = torch.ones_like(nz)
     zero = torch.zeros_like(nz)
-    q_up = torch.stack([1 + nz, -ny, nx, zero], -1) / torch.sqrt(2 * (1 + nz.clamp(min=0)))[:, None]
-    q_down = (
-        torch.stack([-ny, 1 - nz, zero, nx], -1) / torch.sqrt(2 * (1 - nz.clamp(max=0)))[:, None]
-    )
+    # Each branch's denominator sees n_z only where that branch is taken (torch.where rather
+    # than a clamp, whose gradient vanishes at n_z = 0 exactly: the up branch's derivative
+    # there is the one-sided derivative from n_z > 0, as urhead-core's lift computes it).
+    nz_up, nz_down = torch.where(up, nz, zero), torch.where(up, zero, nz)
+    q_up = torch.stack([1 + nz, -ny, nx, zero], -1) / torch.sqrt(2 * (1 + nz_up))[:, None]
+    q_down = torch.stack([-ny, 1 - nz, zero, nx], -1) / torch.sqrt(2 * (1 - nz_down))[:, None]
     q = torch.where(up[:, None], q_up, q_down)
     identity = torch.stack([one, zero, zero, zero], -1)
     return torch.where(valid[:, None], q, identity)

@@ -9,6 +9,7 @@ pub mod adam;
 pub mod camera;
 pub mod error;
 pub mod lbs;
+pub mod lift;
 pub mod mat3;
 pub mod memory;
 pub mod parallel;

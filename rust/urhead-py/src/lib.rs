@@ -23,6 +23,7 @@ mod arrays;
 mod camera;
 mod errors;
 mod lbs;
+mod lift;
 mod memory;
 mod pool;
 mod raster;
@@ -39,6 +40,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     camera::register(m)?;
     adam::register(m)?;
     lbs::register(m)?;
+    lift::register(m)?;
     memory::register(m)?;
     raster::register(m)?;
     splat::register(m)?;

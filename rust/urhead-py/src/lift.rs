@@ -1,0 +1,192 @@
+//! Binding of `urhead_core::lift`: the Gaussian lift's forward and adjoint, each entry point
+//! serving float32 and float64 through one generic body.
+
+use numpy::{Element, PyReadonlyArrayDyn, PyUntypedArrayMethods};
+use pyo3::prelude::*;
+use pyo3::types::PyTuple;
+use urhead_core::lift::{lift_backward, lift_forward, LiftGradOutputs, LiftInputs, LiftNeeds};
+use urhead_core::Real;
+
+use crate::arrays::{array, data, optional_array, with_float_type};
+use crate::errors::{py_err, ShapeError};
+use crate::pool::with_threads;
+
+type Arr<'py, T> = PyReadonlyArrayDyn<'py, T>;
+
+/// Checks the number of dimensions and every trailing size given (`None`: any); returns
+/// the leading size.
+fn leading<T: Element>(arr: &Arr<'_, T>, arg: &str, trailing: &[usize], layout: &str) -> PyResult<usize> {
+    let s = arr.shape();
+    if s.len() != trailing.len() + 1 || s[1..] != *trailing {
+        return Err(ShapeError::new_err(format!(
+            "{arg} must be {layout}, got shape {s:?}"
+        )));
+    }
+    Ok(s[0])
+}
+
+/// The borrowed inputs of both passes.
+struct Arrays<'py, T: Element> {
+    verts: Arr<'py, T>,
+    rotations: Arr<'py, T>,
+    face_verts: Arr<'py, i32>,
+    bary: Arr<'py, T>,
+    normals: Arr<'py, T>,
+    lift: Arr<'py, T>,
+    centre: Arr<'py, T>,
+}
+
+impl<'py, T: Element + Real> Arrays<'py, T> {
+    fn extract(
+        verts: &Bound<'py, PyAny>,
+        rotations: &Bound<'py, PyAny>,
+        face_verts: Arr<'py, i32>,
+        bary: &Bound<'py, PyAny>,
+        normals: &Bound<'py, PyAny>,
+        lift: &Bound<'py, PyAny>,
+        centre: &Bound<'py, PyAny>,
+    ) -> PyResult<Self> {
+        Ok(Self {
+            verts: verts.extract()?,
+            rotations: rotations.extract()?,
+            face_verts,
+            bary: bary.extract()?,
+            normals: normals.extract()?,
+            lift: lift.extract()?,
+            centre: centre.extract()?,
+        })
+    }
+
+    /// The core's inputs and `(N, V)`.
+    fn inputs(&self) -> PyResult<(LiftInputs<'_, T>, usize, usize)> {
+        let v = leading(&self.verts, "verts", &[3], "(V, 3)")?;
+        leading(&self.rotations, "rotations", &[3, 3], "(V, 3, 3)")?;
+        let n = leading(&self.face_verts, "face_verts", &[3], "(N, 3) int32")?;
+        leading(&self.bary, "bary", &[3], "(N, 3)")?;
+        leading(&self.normals, "normals", &[3], "(N, 3)")?;
+        leading(&self.lift, "lift", &[], "(N,)")?;
+        leading(&self.centre, "centre", &[], "(3,)")?;
+        let inputs = LiftInputs {
+            verts: data(&self.verts, "verts")?,
+            rotations: data(&self.rotations, "rotations")?,
+            face_verts: data(&self.face_verts, "face_verts")?,
+            bary: data(&self.bary, "bary")?,
+            normals: data(&self.normals, "normals")?,
+            lift: data(&self.lift, "lift")?,
+            centre: data(&self.centre, "centre")?,
+        };
+        Ok((inputs, n, v))
+    }
+}
+
+fn forward<'py, T: Element + Real>(
+    py: Python<'py>,
+    arrays: Arrays<'py, T>,
+    num_threads: usize,
+) -> PyResult<Bound<'py, PyTuple>> {
+    let (inputs, n, _) = arrays.inputs()?;
+    let out = py
+        .allow_threads(|| with_threads(num_threads, || lift_forward(&inputs)))
+        .map_err(py_err)?;
+    PyTuple::new(
+        py,
+        [
+            array(py, out.means, &[n, 3])?,
+            array(py, out.normals, &[n, 3])?,
+            array(py, out.quats, &[n, 4])?,
+            array(py, out.frames, &[n, 3, 3])?,
+            array(py, out.view_dirs, &[n, 3])?,
+        ],
+    )
+}
+
+fn backward<'py, T: Element + Real>(
+    py: Python<'py>,
+    arrays: Arrays<'py, T>,
+    grads: [Option<Arr<'py, T>>; 3],
+    needs: (bool, bool, bool, bool),
+    num_threads: usize,
+) -> PyResult<Bound<'py, PyTuple>> {
+    let (inputs, n, v) = arrays.inputs()?;
+    let [v_means, v_normals, v_quats] = &grads;
+    let grads_in = LiftGradOutputs {
+        v_means: v_means.as_ref().map(|a| data(a, "v_means")).transpose()?,
+        v_normals: v_normals.as_ref().map(|a| data(a, "v_normals")).transpose()?,
+        v_quats: v_quats.as_ref().map(|a| data(a, "v_quats")).transpose()?,
+    };
+    let needs = LiftNeeds {
+        verts: needs.0,
+        rotations: needs.1,
+        normals: needs.2,
+        lift: needs.3,
+    };
+    let g = py
+        .allow_threads(|| with_threads(num_threads, || lift_backward(&inputs, &grads_in, &needs)))
+        .map_err(py_err)?;
+    let wrap = |x: Option<Vec<T>>, dims: &[usize]| -> PyResult<PyObject> {
+        Ok(match x {
+            Some(x) => array(py, x, dims)?.into_any().unbind(),
+            None => py.None(),
+        })
+    };
+    PyTuple::new(
+        py,
+        [
+            wrap(g.v_verts, &[v, 3])?,
+            wrap(g.v_rotations, &[v, 3, 3])?,
+            wrap(g.v_normals, &[n, 3])?,
+            wrap(g.v_lift, &[n])?,
+        ],
+    )
+}
+
+/// Gaussian lift forward → (means (N, 3), normals (N, 3), quats (N, 4), frames (N, 3, 3),
+/// view_dirs (N, 3)).
+#[pyfunction]
+pub fn lift_gaussians_forward<'py>(
+    py: Python<'py>,
+    verts: &Bound<'py, PyAny>,
+    rotations: &Bound<'py, PyAny>,
+    face_verts: Arr<'py, i32>,
+    bary: &Bound<'py, PyAny>,
+    normals: &Bound<'py, PyAny>,
+    lift: &Bound<'py, PyAny>,
+    centre: &Bound<'py, PyAny>,
+    num_threads: usize,
+) -> PyResult<Bound<'py, PyTuple>> {
+    with_float_type!(verts, T => {
+        let arrays = Arrays::<T>::extract(verts, rotations, face_verts, bary, normals, lift, centre)?;
+        forward(py, arrays, num_threads)
+    })
+}
+
+/// Gaussian lift backward → (v_verts, v_rotations, v_normals, v_lift), None where not
+/// requested; `needs` in that order.
+#[pyfunction]
+pub fn lift_gaussians_backward<'py>(
+    py: Python<'py>,
+    verts: &Bound<'py, PyAny>,
+    rotations: &Bound<'py, PyAny>,
+    face_verts: Arr<'py, i32>,
+    bary: &Bound<'py, PyAny>,
+    normals: &Bound<'py, PyAny>,
+    lift: &Bound<'py, PyAny>,
+    centre: &Bound<'py, PyAny>,
+    v_means: Option<&Bound<'py, PyAny>>,
+    v_normals: Option<&Bound<'py, PyAny>>,
+    v_quats: Option<&Bound<'py, PyAny>>,
+    needs: (bool, bool, bool, bool),
+    num_threads: usize,
+) -> PyResult<Bound<'py, PyTuple>> {
+    with_float_type!(verts, T => {
+        let arrays = Arrays::<T>::extract(verts, rotations, face_verts, bary, normals, lift, centre)?;
+        let grads = [optional_array(v_means)?, optional_array(v_normals)?, optional_array(v_quats)?];
+        backward(py, arrays, grads, needs, num_threads)
+    })
+}
+
+pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_function(wrap_pyfunction!(lift_gaussians_forward, m)?)?;
+    m.add_function(wrap_pyfunction!(lift_gaussians_backward, m)?)?;
+    Ok(())
+}
