@@ -207,3 +207,22 @@ def test_normal_encoding_round_trip_and_sentinel():
     back = decode_normals(rgb[None])[0]
     assert (back[:4] == 0).all()
     assert (back[4:] * n[4:]).sum(-1).min() > math.cos(math.radians(0.7))
+
+
+def test_normal_decoding_is_the_plain_float32_decode_bit_for_bit():
+    """The byte-table decode gives the bits of the direct one: bytes / 127.5 − 1, OpenGL →
+    OpenCV axes, n / max(‖n‖, 1e-6), zero where all three bytes are 0 (every byte value in
+    every channel, and pixels with some bytes 0)."""
+    rng = np.random.default_rng(7)
+    rgb = rng.integers(0, 256, (257, 256, 3), dtype=np.uint8)
+    for k in range(3):
+        rgb[k, :, k] = np.arange(256)  # every byte value in channel k
+    rgb[3:6] = 0
+    rgb[6:9, :, 1:] = 0
+    rgb[9:12, :, 0] = 0
+    valid = rgb.any(-1, keepdims=True)
+    n = (rgb.astype(np.float32) / 127.5 - 1.0) * np.array([1.0, -1.0, -1.0], np.float32)
+    direct = np.where(valid, n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-6), 0)
+    decoded = decode_normals(rgb)
+    assert decoded.dtype == np.float32
+    assert np.array_equal(decoded.view(np.uint32), direct.astype(np.float32).view(np.uint32))

@@ -137,11 +137,28 @@ def encode_normals(normals: np.ndarray) -> np.ndarray:
     return np.where(valid, rgb, 0).astype(np.uint8)
 
 
+# Each channel's byte → its OpenCV-axes component before normalising: (3, 256) float32,
+# the same float32 arithmetic as decoding the bytes one by one.
+_NORMAL_BYTES = (np.arange(256, dtype=np.float32) / np.float32(127.5) - np.float32(1.0))[
+    None
+] * np.array([[1.0], [-1.0], [-1.0]], np.float32)
+
+
 def decode_normals(rgb: np.ndarray) -> np.ndarray:
     """Inverse of :func:`encode_normals`: (H, W, 3) uint8 → (H, W, 3) float32 unit normals
-    in OpenCV camera axes, zero where undefined."""
-    valid = np.any(rgb != 0, axis=-1, keepdims=True)
-    return _opengl_to_opencv(rgb.astype(np.float32) / 127.5 - 1.0, valid)
+    in OpenCV camera axes, zero where undefined.
+
+    A fit decodes a frame's normals every iteration, so this avoids numpy's slow paths
+    (a reduction over a 3-long last axis, float temporaries of the whole map): a byte
+    table per channel, then the norm summed in :func:`numpy.linalg.norm`'s order: the same
+    bits as ``bytes / 127.5 − 1``, the axis flips and ``n / max(‖n‖, 1e-6)`` in float32."""
+    valid = (rgb[..., 0] | rgb[..., 1] | rgb[..., 2]) != 0
+    n = np.stack([_NORMAL_BYTES[k].take(rgb[..., k]) for k in range(3)], -1)
+    squares = n * n
+    norm = np.sqrt((squares[..., 0] + squares[..., 1]) + squares[..., 2])
+    n /= np.maximum(norm, np.float32(1e-6))[..., None]
+    np.copyto(n, np.float32(0.0), where=~valid[..., None])
+    return n
 
 
 def decode_float_normals(gl: np.ndarray) -> np.ndarray:
