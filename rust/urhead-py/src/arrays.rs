@@ -37,6 +37,14 @@ pub fn array<'py, T: Element>(
     data.into_pyarray(py).reshape(dims.to_vec())
 }
 
+/// An optional output: the array of shape `dims`, or None (a gradient not asked for).
+pub fn optional<'py, T: Element>(py: Python<'py>, x: Option<Vec<T>>, dims: &[usize]) -> PyResult<PyObject> {
+    Ok(match x {
+        Some(x) => array(py, x, dims)?.into_any().unbind(),
+        None => py.None(),
+    })
+}
+
 /// An optional array argument of element type `T`.
 pub fn optional_array<'py, T: Element>(
     arr: Option<&Bound<'py, PyAny>>,

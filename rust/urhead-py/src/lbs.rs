@@ -7,7 +7,7 @@ use pyo3::types::PyTuple;
 use urhead_core::lbs::{self as core, LbsGradOutputs, LbsInputs, LbsModel, LbsNeeds, LbsSaved};
 use urhead_core::Real;
 
-use crate::arrays::{array, data, optional_array, shape, with_float_type};
+use crate::arrays::{array, data, optional, optional_array, shape, with_float_type};
 use crate::errors::{py_err, ShapeError};
 use crate::pool::with_threads;
 
@@ -139,20 +139,14 @@ fn backward<'py, T: Element + Real>(
         })
         .map_err(py_err)?;
     let (b, v, nb, j) = (inputs.batch, model.num_verts, model.num_betas, model.num_joints);
-    let wrap = |x: Option<Vec<T>>, dims: &[usize]| -> PyResult<PyObject> {
-        Ok(match x {
-            Some(x) => array(py, x, dims)?.into_any().unbind(),
-            None => py.None(),
-        })
-    };
     PyTuple::new(
         py,
         [
-            wrap(g.v_betas, &[b, nb])?,
-            wrap(g.v_pose, &[b, j * 3])?,
-            wrap(g.v_transl, &[b, 3])?,
-            wrap(g.v_template, &[v, 3])?,
-            wrap(g.v_shapedirs, &[v, 3, nb])?,
+            optional(py, g.v_betas, &[b, nb])?,
+            optional(py, g.v_pose, &[b, j * 3])?,
+            optional(py, g.v_transl, &[b, 3])?,
+            optional(py, g.v_template, &[v, 3])?,
+            optional(py, g.v_shapedirs, &[v, 3, nb])?,
         ],
     )
 }

@@ -7,7 +7,7 @@ use pyo3::types::PyTuple;
 use urhead_core::lift::{lift_backward, lift_forward, LiftGradOutputs, LiftInputs, LiftNeeds};
 use urhead_core::Real;
 
-use crate::arrays::{array, data, optional_array, with_float_type};
+use crate::arrays::{array, data, optional, optional_array, with_float_type};
 use crate::errors::{py_err, ShapeError};
 use crate::pool::with_threads;
 
@@ -123,19 +123,13 @@ fn backward<'py, T: Element + Real>(
     let g = py
         .allow_threads(|| with_threads(num_threads, || lift_backward(&inputs, &grads_in, &needs)))
         .map_err(py_err)?;
-    let wrap = |x: Option<Vec<T>>, dims: &[usize]| -> PyResult<PyObject> {
-        Ok(match x {
-            Some(x) => array(py, x, dims)?.into_any().unbind(),
-            None => py.None(),
-        })
-    };
     PyTuple::new(
         py,
         [
-            wrap(g.v_verts, &[v, 3])?,
-            wrap(g.v_rotations, &[v, 3, 3])?,
-            wrap(g.v_normals, &[n, 3])?,
-            wrap(g.v_lift, &[n])?,
+            optional(py, g.v_verts, &[v, 3])?,
+            optional(py, g.v_rotations, &[v, 3, 3])?,
+            optional(py, g.v_normals, &[n, 3])?,
+            optional(py, g.v_lift, &[n])?,
         ],
     )
 }

@@ -7,7 +7,7 @@ use pyo3::types::PyTuple;
 use urhead_core::raster::{self, AntialiasInputs};
 use urhead_core::Real;
 
-use crate::arrays::{array, data, shape, with_float_type};
+use crate::arrays::{array, data, optional, shape, with_float_type};
 use crate::camera::{camera, CameraArgs};
 use crate::errors::{py_err, ShapeError};
 use crate::pool::with_threads;
@@ -40,13 +40,6 @@ fn image_dims<T: Element>(
 ) -> PyResult<(usize, usize)> {
     let s = shape(arr, arg, ndim, layout)?;
     Ok((s[0], s[1]))
-}
-
-fn optional<'py, T: Element>(py: Python<'py>, x: Option<Vec<T>>, dims: &[usize]) -> PyResult<PyObject> {
-    Ok(match x {
-        Some(x) => array(py, x, dims)?.into_any().unbind(),
-        None => py.None(),
-    })
 }
 
 fn rasterize_forward_typed<'py, T: Element + Real>(

@@ -10,7 +10,7 @@ use urhead_core::splat::{
     ProjectInputs, ProjectNeeds, RasterInputs, ShCoeffs, SplatReal,
 };
 
-use crate::arrays::{array, data, optional_array, shape, with_float_type};
+use crate::arrays::{array, data, optional, optional_array, shape, with_float_type};
 use crate::camera::{camera, CameraArgs};
 use crate::errors::{py_err, ShapeError};
 use crate::pool::with_threads;
@@ -190,19 +190,13 @@ fn project_backward_typed<'py, T: Element + SplatReal>(
         .map_err(py_err)?;
     let n = inputs.num_gaussians;
     let k = inputs.sh.map_or(0, |s| s.num_coeffs);
-    let wrap = |x: Option<Vec<T>>, dims: &[usize]| -> PyResult<PyObject> {
-        Ok(match x {
-            Some(x) => array(py, x, dims)?.into_any().unbind(),
-            None => py.None(),
-        })
-    };
     PyTuple::new(
         py,
         [
-            wrap(g.v_means, &[n, 3])?,
-            wrap(g.v_quats, &[n, 4])?,
-            wrap(g.v_scales, &[n, 3])?,
-            wrap(g.v_sh, &[n, k, 3])?,
+            optional(py, g.v_means, &[n, 3])?,
+            optional(py, g.v_quats, &[n, 4])?,
+            optional(py, g.v_scales, &[n, 3])?,
+            optional(py, g.v_sh, &[n, k, 3])?,
         ],
     )
 }
