@@ -158,6 +158,29 @@ def test_frames_are_cached_with_a_bound(tmp_path):
     assert [f.timestep for f in subject.train[1:3]] == [1, 2]
 
 
+def test_frame_cache_is_bounded_in_bytes(tmp_path):
+    root = tmp_path / "s"
+    write_subject(root, num_frames=6, normals=False)
+    one = load_subject(root, test_last=1, cache_size=1).train[0]
+    frame_bytes = sum(t.numel() * t.element_size() for t in (one.image, one.mask))
+    subject = load_subject(root, test_last=1, cache_bytes=3 * frame_bytes)
+    frames = [subject.train[i] for i in range(5)]
+    assert len(subject._cache) == 3  # the byte budget, not a count, evicted two
+    assert subject.train[4] is frames[4] and subject.train[0] is not frames[0]
+    everything = load_subject(root, test_last=1)  # the default budget holds them all
+    first = [everything.train[i] for i in range(5)]
+    assert all(everything.train[i] is first[i] for i in range(5))
+    smaller = load_subject(root, test_last=1, cache_bytes=frame_bytes // 2)
+    a = smaller.train[0]  # a frame larger than the budget is still returned, kept alone
+    assert smaller.train[0] is a and len(smaller._cache) == 1
+    smaller.train[1]
+    assert len(smaller._cache) == 1
+    with pytest.raises(ValueError, match="cache_bytes"):
+        load_subject(root, test_last=1, cache_bytes=-1)
+    with pytest.raises(ValueError, match="cache_size"):
+        load_subject(root, test_last=1, cache_size=0)
+
+
 def test_writer_is_atomic_and_refuses_to_clobber(tmp_path):
     root = tmp_path / "s"
     rng = np.random.default_rng(0)
