@@ -63,7 +63,7 @@ def main() -> None:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     with logging_redirect_tqdm():  # log lines above the progress bar, not through it
         result = Trainer(subject, procedural_head(0), config, args.out).run(resume=args.resume)
-    write_test_strip(result.avatar, subject, args.out / "test_frames.png", config)
+    write_test_strip(result, subject, args.out / "test_frames.png", config)
     metrics = dict(result.metrics, total_seconds=round(time.perf_counter() - start, 1))
     truth = subject_dir / "synthetic_ground_truth.npz"
     if truth.is_file():
@@ -79,19 +79,24 @@ def held_out(subject):
     return subject.test if len(subject.test) else subject.val
 
 
-def write_test_strip(avatar, subject, path: Path, config: FitConfig, count: int = 4) -> None:
+def write_test_strip(result, subject, path: Path, config: FitConfig, count: int = 4) -> None:
     """Rows of held-out frames, labelled: ground truth | avatar (tracked FLAME) | avatar
-    (refined FLAME) | mesh branch (tracked) | error ×4 (refined)."""
+    (refined FLAME) | mesh branch (tracked) | error ×4 (refined). The refined parameters
+    are the ones the fit's metrics were scored with (refined again only if it has none)."""
     import cv2
 
     from urhead.eval import RefineSettings, refine_params_of
 
+    avatar = result.avatar
     frames = held_out(subject)
     picks = np.linspace(0, len(frames) - 1, count).round().astype(int)
     shown = [frames[int(i)] for i in picks]
-    settings = RefineSettings(steps=config.refine_steps, full_steps=config.refine_full_steps)
+    scored = [result.refined.get((f.timestep, f.camera_index)) for f in shown]
+    if any(p is None for p in scored):
+        settings = RefineSettings(steps=config.refine_steps, full_steps=config.refine_full_steps)
+        scored = refine_params_of(avatar, shown, settings)
     rows = []
-    for frame, refined in zip(shown, refine_params_of(avatar, shown, settings), strict=True):
+    for frame, refined in zip(shown, scored, strict=True):
         tracked = frame_params(avatar, frame)
         with torch.no_grad():
             out = avatar.render(tracked, frame.camera)

@@ -22,7 +22,7 @@ from urhead.cli import main
 from urhead.config import FitConfig
 from urhead.data import load_subject
 from urhead.data.synth.subject import SynthConfig, synthesize
-from urhead.eval.metrics import frame_params
+from urhead.eval.metrics import evaluate_frames, frame_params
 from urhead.eval.stlpips import load_stlpips
 from urhead.head import procedural_head
 from urhead.model import load_avatar
@@ -97,6 +97,18 @@ def test_fit_learns_and_writes_its_outputs(fitted):
     assert avatar.num_gaussians == metrics["num_gaussians"]
     assert torch.equal(avatar.maps, fitted.avatar.maps.detach())
     assert json.loads((out / "avatar" / "avatar.json").read_text())["config"] == asdict(SMALL_FIT)
+
+
+def test_result_carries_the_refined_parameters_it_scored(fitted, subject_dir):
+    subject = load_subject(subject_dir)
+    held = list(subject.test if len(subject.test) else subject.val)
+    assert set(fitted.refined) == {(f.timestep, f.camera_index) for f in held}
+    params = [fitted.refined[(f.timestep, f.camera_index)] for f in held]
+    tracked = [fitted.avatar.params_from_flame(f.flame) for f in held]
+    assert any(not torch.equal(p.pose, t.pose) for p, t in zip(params, tracked, strict=True))
+    scores = evaluate_frames(fitted.avatar, held, params=params, mesh_only=False)
+    metrics = json.loads((fitted.out / "metrics.json").read_text())
+    assert scores.psnr == pytest.approx(metrics["psnr_refined"], abs=1e-9)
 
 
 def test_metrics_carry_stlpips_of_the_held_out_frames(fitted, subject_dir):

@@ -32,6 +32,8 @@ class FrameScores:
     psnr_refined_full: float | None = None
     ssim_refined: float | None = None
     stlpips_alex: float | None = None
+    refined_params: tuple[FlameParams, ...] | None = None
+    """Each frame's parameters after refinement (with ``refine``), in ``frames`` order."""
 
 
 def frame_params(avatar: Avatar, frame) -> FlameParams:
@@ -93,6 +95,7 @@ def evaluate_frames(
         psnr_refined=mean(after.psnr),
         psnr_refined_full=mean(after.psnr_full),
         ssim_refined=mean(after.ssim),
+        refined_params=tuple(refined),
     )
 
 

@@ -15,7 +15,7 @@ import json
 import logging
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -81,6 +81,9 @@ class FitResult:
     avatar: Avatar
     metrics: dict
     out: Path
+    refined: dict = field(default_factory=dict)
+    """The held-out frames' refined FLAME parameters the metrics were scored with, by
+    ``(timestep, camera_index)`` (empty without refinement)."""
 
 
 def frame_order(seed: int, epoch: int, count: int) -> np.ndarray:
@@ -468,7 +471,11 @@ class Trainer:
         plot_psnr_vs_time(history, self.out / "psnr_vs_time.png", title=_title(c, avatar))
         write_bytes_atomically(self.out / "metrics.json", json.dumps(metrics, indent=2).encode())
         remove_checkpoints(self.out)  # the avatar supersedes them (GBs at 2048²)
-        return FitResult(avatar, metrics, self.out)
+        refined = {}
+        if scores.refined_params is not None:
+            keys = [(f.timestep, f.camera_index) for f in held_out]
+            refined = dict(zip(keys, scores.refined_params, strict=True))
+        return FitResult(avatar, metrics, self.out, refined)
 
 
 def _eye_columns(avatar: Avatar) -> slice:
