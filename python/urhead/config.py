@@ -274,6 +274,10 @@ FIT_PRESETS: dict[str, dict] = {
         # Each texel is updated ~17x less often than in the paper's schedule: larger
         # colour steps (ours).
         "lr_color": 2.5e-3,
+        # S and N likewise (main job, all 90 held-out frames, tracked / refined in the mask:
+        # S ×5 +0.18 / +0.05 dB, S ×10 +0.00 / -0.08, S ×5 with N ×5 +0.19 / +0.14).
+        "lr_scale": 2.5e-2,
+        "lr_normal": 5e-3,
         # A frame's row is visited ~14 times: pose and translation 10x the paper's rates
         # (measured on the default subject at 256², held-out in-mask PSNR with tracked /
         # exact FLAME: +0.1 / +0.5 dB; 100x, with expression 1e-2, lost 1.0 / 0.8 dB).
