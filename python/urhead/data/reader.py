@@ -246,7 +246,7 @@ def load_subject(
             order every epoch and an evaluation scans the held-out frames in order, so a
             cache smaller than the frames misses on nearly every read; at 512² a frame
             with normals is ~7 MB, so the built-in subject's 300 fit in ~2.2 GB and each
-            frame is decoded once instead of on every visit (~36 ms each).
+            frame is decoded once instead of on nearly every visit (~30 ms each).
 
     Cameras come from each frame's OpenGL camera-to-world ``transform_matrix`` and its
     ``fl_x, fl_y, cx, cy, w, h`` (the top-level values when a frame has none), converted to
