@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from urhead._memory import available_memory_bytes
 from urhead._threads import num_threads
 from urhead.camera import Camera
 from urhead.data.images import (
@@ -242,7 +243,7 @@ def load_subject(
             benchmark protocol of the paper family, N = 350).
         cache_size: at most this many decoded frames are kept (LRU); None: no count limit.
         cache_bytes: and at most this many bytes of them (default: a quarter of the
-            machine's memory, at most 8 GiB). A fit visits its training frames in a new
+            memory available, at most 8 GiB). A fit visits its training frames in a new
             order every epoch and an evaluation scans the held-out frames in order, so a
             cache smaller than the frames misses on nearly every read; at 512² a frame
             with normals is ~7 MB, so the built-in subject's 300 fit in ~2.2 GB and each
@@ -311,13 +312,13 @@ def load_subject(
 
 
 def default_cache_bytes() -> int:
-    """The decoded-frame cache's default budget: a quarter of the physical memory, at most
-    8 GiB (1 GiB where the size is unknown)."""
-    try:
-        physical = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    except (AttributeError, ValueError, OSError):
+    """The decoded-frame cache's default budget: a quarter of the memory available now
+    (MemAvailable, lowered to the cgroup's limit), at most 8 GiB; 1 GiB where neither is
+    known."""
+    available = available_memory_bytes()
+    if available is None:
         return 1 << 30
-    return min(physical // 4, 8 << 30)
+    return min(available // 4, 8 << 30)
 
 
 def _frame_bytes(frame: Frame) -> int:

@@ -4,8 +4,7 @@ allocation."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
+from urhead._memory import available_memory_bytes
 from urhead.config import FitConfig
 from urhead.errors import SizeLimitError
 from urhead.model.map_layout import MapLayout
@@ -15,7 +14,9 @@ MAP_COPIES = 3
 gradient is sparse)."""
 
 OVERHEAD_BYTES = 1 << 30
-"""Everything else (torch, decoded frames, renders at 512²), measured well under 1 GiB."""
+"""Everything else (torch, renders at 512²), measured well under 1 GiB. Decoded frames
+are cached within a quarter of the memory available when the subject is opened
+(:func:`urhead.data.reader.default_cache_bytes`)."""
 
 
 def fit_memory_bytes(config: FitConfig) -> int:
@@ -27,27 +28,6 @@ def fit_memory_bytes(config: FitConfig) -> int:
         shading=config.shading,
     )
     return MAP_COPIES * config.uv_resolution**2 * layout.channels * 4 + OVERHEAD_BYTES
-
-
-def available_memory_bytes(
-    meminfo: Path = Path("/proc/meminfo"), cgroup: Path = Path("/sys/fs/cgroup")
-) -> int | None:
-    """MemAvailable, lowered to the cgroup's limit left (cgroup v2 ``memory.max`` minus
-    ``memory.current``); None when neither is known."""
-    found = []
-    try:
-        for line in meminfo.read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                found.append(int(line.split()[1]) * 1024)
-    except (OSError, ValueError, IndexError):
-        pass
-    try:
-        limit = (cgroup / "memory.max").read_text().strip()
-        if limit != "max":
-            found.append(int(limit) - int((cgroup / "memory.current").read_text()))
-    except (OSError, ValueError):
-        pass
-    return min(found) if found else None
 
 
 def check_fit_memory(config: FitConfig, available: int | None = None) -> None:
