@@ -295,7 +295,6 @@ class Avatar:
         pixels = (raster.tri_id.reshape(-1) >= 0).nonzero()[:, 0]
         uv = uv_image.reshape(-1, 2)[pixels]
         rows = self.lookup(uv.contiguous(), gather)
-        samples = layout.split(rows)
         rot_image = interpolate(rotations.reshape(-1, 9), raster, t.faces)
         pixel_rot = rot_image.reshape(-1, 9)[pixels].reshape(-1, 3, 3)
         rays = self._rays(camera)[pixels]
@@ -307,7 +306,9 @@ class Avatar:
         shaded = antialias(flat.reshape(h, w, 4), raster, displaced, t.faces, camera, t.topology)
         normals = None
         if want_normals:
-            world = _rotate_normalize(pixel_rot, samples.normal)
+            # A slice, not layout.split: the split's backward concatenates a gradient for
+            # every map (zeros but N) over all P rows, ~12 ms a 512² step.
+            world = _rotate_normalize(pixel_rot, rows[:, layout.normal])
             normals = world @ camera.viewmat[:3, :3].T
         return MeshRender(
             shaded[..., :3],
@@ -396,13 +397,14 @@ class Avatar:
 def _rest_frame_dirs(rays: torch.Tensor, rotation: torch.Tensor) -> torch.Tensor:
     """(P, 3) unit world rays taken into the rest frame by (P, 3, 3) rotations:
     ``normalise(Rᵀ·ray)``."""
-    local = (rays[:, :, None] * rotation).sum(1)  # Rᵀ·ray
+    # bmm, not a broadcast product and sum: no (P, 3, 3) temporary, ~3× faster at 512².
+    local = torch.bmm(rays[:, None, :], rotation)[:, 0]  # rayᵀ·R = (Rᵀ·ray)ᵀ
     return local / local.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 
 def _rotate_normalize(rotations: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
     """(N, 3, 3) rotations applied to (N, 3) normals, normalised (zero stays zero)."""
-    n = (rotations * normals[:, None, :]).sum(-1)
+    n = torch.bmm(rotations, normals[:, :, None])[..., 0]  # fwd+bwd ~3× the broadcast's speed
     return n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 
