@@ -217,3 +217,36 @@ def test_full_size_steps_finish_what_the_coarse_steps_leave(head):
     assert fine > max(coarse, more_coarse) + 0.5
     with pytest.raises(ValueError, match="full_steps"):
         RefineSettings(full_steps=-1)
+
+
+def test_the_coarse_stage_goes_on_while_its_loss_still_falls_and_no_further(head, monkeypatch):
+    """Far from the optimum the reduced-size stage takes more than ``steps`` (up to
+    ``coarse_max_steps``) and ends nearer; a threshold no step can meet keeps ``steps``."""
+    avatar = textured_avatar(head, resolution=64, count=400)
+    cam = camera(64)
+    truth = _truth(avatar)
+    frame = _frame(avatar, truth, 100, cam)
+    start = _perturbed(truth)
+    counted = []
+    adam_step = torch.optim.Adam.step
+
+    def counting_step(self, *args, **kwargs):
+        counted[-1] += 1
+        return adam_step(self, *args, **kwargs)
+
+    monkeypatch.setattr(torch.optim.Adam, "step", counting_step)
+
+    def run(**kwargs):
+        counted.append(0)
+        settings = RefineSettings(steps=3, full_steps=0, max_side=64, **kwargs)
+        return refine_params(avatar, frame, start, settings)
+
+    fixed = run(coarse_min_gain=1.0)
+    adaptive = run(coarse_max_steps=15, coarse_min_gain=0.01)
+    assert counted[0] == 3
+    assert 3 < counted[1] <= 15
+    assert _pose_error(adaptive, truth) < _pose_error(fixed, truth)
+    with pytest.raises(ValueError, match="coarse_max_steps"):
+        RefineSettings(coarse_max_steps=-1)
+    with pytest.raises(ValueError, match="coarse_min_gain"):
+        RefineSettings(coarse_min_gain=float("nan"))
