@@ -241,7 +241,7 @@ def test_the_coarse_stage_goes_on_while_its_loss_still_falls_and_no_further(head
         settings = RefineSettings(steps=3, full_steps=0, max_side=64, **kwargs)
         return refine_params(avatar, frame, start, settings)
 
-    fixed = run(coarse_min_gain=1.0)
+    fixed = run(coarse_max_steps=15, coarse_min_gain=1.0)
     adaptive = run(coarse_max_steps=15, coarse_min_gain=0.01)
     assert counted[0] == 3
     assert 3 < counted[1] <= 15

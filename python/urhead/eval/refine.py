@@ -43,16 +43,16 @@ class RefineSettings:
     max_side: int = 256
     """Refine on the frame resampled (area average) so its longer side is at most this:
     the coarse pose is found as well at 256² as at 512², in a quarter of the time."""
-    coarse_max_steps: int = 15
+    coarse_max_steps: int = 0
     """The reduced-size stage goes on past ``steps``, up to this many, while its last step
-    still lowered the loss by ``coarse_min_gain`` or more: ~1 px of tracker error is
-    found in ~3 steps, ~4 px needs more."""
+    still lowered the loss by ``coarse_min_gain`` or more: ~1 px of tracker error is found
+    in ~3 steps, ~4 px needs more. Off by default (0): on the main job's validation split
+    (3 + 10 steps, up to 15) it scored 29.03 dB either way for 1.6× the refinement time; on
+    24 training frames of the hard subject, started from their tracked rows, 24.29 → 25.10
+    (`urhead eval --refine-coarse-max-steps 15`)."""
     coarse_min_gain: float = 0.03
-    """Relative loss decrease of a step below which the reduced-size stage stops (once past
-    ``steps``). Chosen on frames the held-out scores never saw (in-mask PSNR after the
-    full-size steps): the main job's validation split 29.03 dB with or without it, 3 + 10
-    fixed steps on 24 training frames of the hard subject started from their tracked rows
-    24.29 → 25.10 (a 1 % threshold: 28.99 / 25.15)."""
+    """Relative loss decrease of a step below which the extended stage stops (a 1 %
+    threshold: 28.99 / 25.15 on the frames above)."""
     full_steps: int = 10
     """Adam steps at the frame's own size after the coarse ones: the last fraction of a
     pixel of alignment only shows at full resolution."""

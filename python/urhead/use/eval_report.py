@@ -120,6 +120,14 @@ def add_parser(subparsers) -> None:
         default=RefineSettings().full_steps,
         help="Adam steps per frame at full size after --refine-steps (default: %(default)s)",
     )
+    p.add_argument(
+        "--refine-coarse-max-steps",
+        type=int,
+        default=RefineSettings().coarse_max_steps,
+        help="let the <= 256 px stage go on past --refine-steps, up to this many, while a "
+        "step still lowers the loss by 3%% (for trackers several pixels off; default: "
+        "%(default)s, off)",
+    )
     add_background_option(p)
     p.set_defaults(run=run)
 
@@ -147,11 +155,15 @@ def run(args: argparse.Namespace) -> int:
         notes += [note] if note else []
     for note in notes:
         print(note, file=report)
-    for name in ("refine_steps", "refine_full_steps"):
+    for name in ("refine_steps", "refine_full_steps", "refine_coarse_max_steps"):
         if getattr(args, name) < 0:
             raise SystemExit(f"--{name.replace('_', '-')} must be >= 0, got {getattr(args, name)}")
     refine = (
-        RefineSettings(steps=args.refine_steps, full_steps=args.refine_full_steps)
+        RefineSettings(
+            steps=args.refine_steps,
+            full_steps=args.refine_full_steps,
+            coarse_max_steps=args.refine_coarse_max_steps,
+        )
         if args.refine_flame
         else None
     )
