@@ -125,8 +125,8 @@ def add_parser(subparsers) -> None:
         type=int,
         default=RefineSettings().coarse_max_steps,
         help="let the <= 256 px stage go on past --refine-steps, up to this many, while a "
-        "step still lowers the loss by 3%% (for trackers several pixels off; default: "
-        "%(default)s, off)",
+        f"step still lowers the loss by {RefineSettings().coarse_min_gain:.0%}% (for trackers "
+        "several pixels off; default: %(default)s, off)",
     )
     add_background_option(p)
     p.set_defaults(run=run)
