@@ -21,6 +21,10 @@ Temporal stability, over consecutive frame pairs (same camera, timesteps t−1 a
 - ``temporal_stlpips_alex``: the same with ST-LPIPS.
 Each is reported as mean and variance over the pairs.
 
+With ``--error-breakdown``, ``error_breakdown`` says where the in-mask error sits: its share
+and PSNR in the silhouette band, beyond the mesh and on it, per head region
+(:mod:`urhead.eval.breakdown`), after refinement when ``--refine-flame`` is given.
+
 Speed: the median over frames of one forward render (no gradients, after one warm-up
 render), as frames per second, at the subject's resolution.
 """
@@ -38,6 +42,7 @@ import torch
 from urhead._atomic import write_file_atomically
 from urhead._progress import progress as progress_bar
 from urhead.eval import RefineSettings, evaluate_frames, refine_params_of
+from urhead.eval.breakdown import error_breakdown, format_breakdown
 from urhead.eval.metrics import frame_params
 from urhead.eval.per_frame import (
     FLAME_PARAMETERS,
@@ -128,6 +133,13 @@ def add_parser(subparsers) -> None:
         f"step still lowers the loss by {RefineSettings().coarse_min_gain:.0%}% (for trackers "
         "several pixels off; default: %(default)s, off)",
     )
+    p.add_argument(
+        "--error-breakdown",
+        action="store_true",
+        help="also report where the in-mask error sits: the silhouette band, mask pixels "
+        "beyond the mesh and the rest, per head region (after refinement with "
+        "--refine-flame); one more render per frame",
+    )
     add_background_option(p)
     p.set_defaults(run=run)
 
@@ -174,6 +186,7 @@ def run(args: argparse.Namespace) -> int:
         lpips=nets,
         stlpips=stlpips,
         refine=refine,
+        breakdown=args.error_breakdown,
         progress=True,
     )
     result.update(
@@ -184,6 +197,8 @@ def run(args: argparse.Namespace) -> int:
     )
     text = json.dumps(result, indent=2)
     print(format_table(result), file=report)
+    if result.get("error_breakdown") is not None:
+        print(format_breakdown(result["error_breakdown"]), file=report)
     if to_stdout:
         print(text, flush=True)
     else:
@@ -200,12 +215,15 @@ def evaluate_avatar(
     lpips=None,
     stlpips=None,
     refine: RefineSettings | None = None,
+    breakdown: bool = False,
     progress: bool = False,
 ) -> dict:
     """Scores ``frames`` (dataset frames with image, mask, camera, flame); ``lpips`` maps a
     variant name ("alex", "vgg") to a scorer ``(image, target, mask) -> float``;
     ``stlpips`` is a :class:`~urhead.eval.stlpips.StLpips` or None; with ``refine`` also
-    after test-time refinement. Returns the JSON-ready metrics (module docstring)."""
+    after test-time refinement; with ``breakdown`` also ``error_breakdown`` (of the
+    refined parameters when refining). Returns the JSON-ready metrics (module
+    docstring)."""
     if len(frames) == 0:
         raise ValueError("frames is empty: nothing to evaluate")
     result = _evaluate(
@@ -216,13 +234,14 @@ def evaluate_avatar(
         stlpips=stlpips,
         progress=progress,
     )
+    refined = None
     if refine is not None and refine.total_steps > 0:
         with progress_bar(len(frames), "refine", enabled=progress) as bar:
-            params = refine_params_of(
+            refined = refine_params_of(
                 avatar, frames, refine, occlusion_aware, progress=lambda: bar.update(1)
             )
         after = evaluate_frames(
-            avatar, frames, occlusion_aware=occlusion_aware, mesh_only=False, params=params
+            avatar, frames, occlusion_aware=occlusion_aware, mesh_only=False, params=refined
         )
         result.update(
             psnr_refined=after.psnr,
@@ -232,6 +251,13 @@ def evaluate_avatar(
             refine_full_steps=refine.full_steps,
         )
         result["per_frame"]["psnr_refined"] = list(after.per_frame_psnr)
+    result["error_breakdown"] = None
+    if breakdown:
+        params = refined or [frame_params(avatar, frame) for frame in frames]
+        result["error_breakdown"] = error_breakdown(
+            avatar, frames, params, occlusion_aware=occlusion_aware
+        )
+        result["error_breakdown"]["flame_parameters"] = "tracked" if refined is None else "refined"
     return result
 
 
