@@ -396,3 +396,43 @@ def test_sampler_resamples_on_its_schedule_and_round_trips_its_state(head):
     assert sampler.accumulator.count.sum() == 0 and sampler.max_radius.shape == (grown,)
     sampler.step_end(avatar, frame, 20)  # never after the last iteration
     assert avatar.num_gaussians == grown
+
+
+def test_sampler_prunes_a_runaway_gaussian_seen_in_a_rejected_step(head):
+    """A texel whose scale ran away puts a screen-filling Gaussian in the render; the guard
+    rolls the maps back but not the Gaussian set, so the sampler drops it at once."""
+    from dataclasses import replace as with_options
+
+    from urhead.config import FitConfig
+    from urhead.model import GaussianSampler
+
+    config = with_options(FitConfig(), uv_resolution=32, initial_gaussians=200, max_gaussians=230)
+    avatar = make_avatar(head, count=200)
+    sampler = GaussianSampler(config, head, avatar.num_gaussians)
+    frame = SimpleNamespace(image=torch.rand(48, 48, 3), mask=torch.ones(48, 48), camera=camera())
+    with torch.no_grad():
+        before = avatar.render(avatar.frame(3), camera())
+    visible = torch.nonzero(before.gaussians.radii.amax(-1) > 0)[:, 0]
+    assert len(visible) > 10
+    assert sampler.prune_oversized(avatar, before, frame) == 0  # none too large: no change
+    assert avatar.num_gaussians == 200
+
+    sampler.max_radius = torch.arange(200, dtype=torch.int32)  # tags to follow the reorder
+    runaway = int(visible[len(visible) // 2])
+    u, v = avatar.gaussian_uv[runaway].tolist()
+    r = avatar.maps.shape[0]
+    with torch.no_grad():
+        row, col = int((1 - v) * r), int(u * r)
+        avatar.maps[max(row - 1, 0) : row + 2, max(col - 1, 0) : col + 2, avatar.layout.scale] = 0.0
+        render = avatar.render(avatar.frame(3), camera())  # σ = 1 m: fills the screen
+    limit = config.prune_screen_fraction * 48
+    oversized = render.gaussians.radii.amax(-1) > limit
+    assert oversized[runaway]
+    original_uv = avatar.gaussian_uv.clone()
+    pruned = sampler.prune_oversized(avatar, render, frame)
+    assert pruned == int(oversized.sum()) >= 1
+    assert avatar.num_gaussians == 200 - pruned
+    # Each kept Gaussian keeps its own recorded radius (here: its old index).
+    old_index = sampler.max_radius.long()
+    assert torch.equal(avatar.gaussian_uv, original_uv[old_index])
+    assert not oversized[old_index].any() and runaway not in old_index.tolist()

@@ -96,20 +96,23 @@ class ErrorAccumulator:
         self.count.copy_(state["count"])
 
 
-def set_gaussians(avatar: Avatar, surface: UvSurface, uv: np.ndarray) -> None:
+def set_gaussians(avatar: Avatar, surface: UvSurface, uv: np.ndarray) -> np.ndarray:
     """Replaces the avatar's Gaussians by those at UV points ``uv`` (N, 2) on the atlas,
     ordered by 32-texel tile of the maps and then row-major inside it, so the lookups of
-    neighbouring Gaussians hit the same cache lines of a 2048² map."""
+    neighbouring Gaussians hit the same cache lines of a 2048² map. Returns the order
+    (N,): the new Gaussian i is ``uv[order[i]]``."""
     h, w = avatar.maps.shape[:2]
     col = np.clip((uv[:, 0] * w).astype(np.int64), 0, w - 1)
     row = np.clip(((1 - uv[:, 1]) * h).astype(np.int64), 0, h - 1)
-    uv = uv[np.lexsort((col, row, col // 32, row // 32))]
+    order = np.lexsort((col, row, col // 32, row // 32))
+    uv = uv[order]
     face, bary = surface.locate(uv)
     if (face < 0).any():
         raise InvalidArgumentError("Gaussian UV points must lie on the atlas")
     avatar.gaussian_uv = torch.from_numpy(np.ascontiguousarray(uv, np.float32))
     avatar.gaussian_face = torch.from_numpy(face)
     avatar.gaussian_bary = torch.from_numpy(bary.astype(np.float32))
+    return order
 
 
 class GaussianSampler:
@@ -139,6 +142,27 @@ class GaussianSampler:
         if render.gaussians is not None:
             radius = render.gaussians.radii.amax(-1)
             self.max_radius = torch.maximum(self.max_radius, radius)
+
+    def prune_oversized(self, avatar, render, frame) -> int:
+        """After a step the guard rejected: prunes at once the Gaussians that ``render``
+        drew larger than the screen limit, and returns how many. The guard rolls the maps
+        back but not the Gaussian set, so a Gaussian sampled onto a texel whose scale has
+        run away (a white Gaussian on a white background costs nothing while it grows)
+        would otherwise make every later step jump until the next round, which the
+        rejected steps never inform (:meth:`observe` sees applied steps only)."""
+        if render.gaussians is None or avatar.num_gaussians == 0:
+            return 0
+        side = max(frame.camera.width, frame.camera.height)
+        radius = render.gaussians.radii.amax(-1)
+        keep = radius <= self.config.prune_screen_fraction * side
+        pruned = int((~keep).sum())
+        if pruned:
+            order = set_gaussians(avatar, self.surface, avatar.gaussian_uv[keep].numpy())
+            self.max_radius = self.max_radius[keep][torch.from_numpy(order)]
+            log.info(
+                "pruned %d Gaussians larger than the screen limit after a rejected step", pruned
+            )
+        return pruned
 
     def step_end(self, avatar, frame, iteration: int) -> None:
         """After ``iteration`` iterations are done: resamples on the schedule (never after

@@ -323,6 +323,8 @@ class Trainer:
         loss.backward()
         if state.guard.step(it, row, loss.detach()):  # applies the step, or undoes it
             state.sampler.observe(render, frame)
+        else:
+            state.sampler.prune_oversized(avatar, render, frame)
         avatar.maps.grad = None
         avatar.frame_params.grad = None
         state.iteration = it = it + 1
