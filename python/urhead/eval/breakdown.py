@@ -28,7 +28,6 @@ import torch.nn.functional as F
 
 from urhead.head.model import REGION_NAMES
 from urhead.model.sampling import nearest_pixel
-from urhead.ops import rasterize
 
 BAND_PX = 2
 """Half-width of the silhouette band, pixels."""
@@ -129,13 +128,11 @@ def error_breakdown(
 ) -> dict:
     """Renders each of ``frames`` with its entry of ``params`` and breaks its in-mask error
     down (module docstring); :meth:`ErrorBreakdown.report` of them all."""
-    tables = avatar.tables()
     face_region = torch.from_numpy(np.asarray(avatar.head.face_region(), np.int64))
     breakdown = ErrorBreakdown()
     for frame, p in zip(frames, params, strict=True):
         out = avatar.render(p, frame.camera, occlusion_aware=occlusion_aware)
-        tri_id = rasterize(out.mesh.verts, tables.faces, frame.camera).tri_id
-        tri_id = tri_id.reshape(frame.mask.shape)
+        tri_id = out.mesh.tri_id
         breakdown.add(
             out.image.clamp(0, 1),
             frame.image,

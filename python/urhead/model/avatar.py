@@ -87,6 +87,8 @@ class MeshRender(NamedTuple):
     """(V, 3) displaced posed vertices."""
     offsets: torch.Tensor
     """(V, 3) displacement of each vertex, v̂ − v."""
+    tri_id: torch.Tensor
+    """(H, W) int32 triangle seen at each pixel centre, −1 where empty."""
 
 
 class GaussianLift(NamedTuple):
@@ -319,6 +321,7 @@ class Avatar:
             raster.depth,
             displaced,
             offsets,
+            raster.tri_id.reshape(h, w),
         )
 
     def lift_gaussians(self, verts, rotations, camera, gather=None, sh_degree=None) -> GaussianLift:

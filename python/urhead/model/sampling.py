@@ -152,9 +152,7 @@ class GaussianSampler:
         rejected steps never inform (:meth:`observe` sees applied steps only)."""
         if render.gaussians is None or avatar.num_gaussians == 0:
             return 0
-        side = max(frame.camera.width, frame.camera.height)
-        radius = render.gaussians.radii.amax(-1)
-        keep = radius <= self.config.prune_screen_fraction * side
+        keep = render.gaussians.radii.amax(-1) <= self._screen_limit(frame)
         pruned = int((~keep).sum())
         if pruned:
             order = set_gaussians(avatar, self.surface, avatar.gaussian_uv[keep].numpy())
@@ -178,8 +176,7 @@ class GaussianSampler:
         with torch.no_grad():
             at_gaussians = texture(avatar.maps, avatar.gaussian_uv)
             opacity = torch.sigmoid(at_gaussians[:, avatar.layout.opacity])
-        side = max(frame.camera.width, frame.camera.height)
-        keep = (opacity >= c.prune_opacity) & (self.max_radius <= c.prune_screen_fraction * side)
+        keep = (opacity >= c.prune_opacity) & (self.max_radius <= self._screen_limit(frame))
         uv = avatar.gaussian_uv[keep].numpy()
         rng = np.random.default_rng([c.seed, 2, iteration])
         room = max(min(c.sample_cap, c.max_gaussians - len(uv)), 0)
@@ -197,6 +194,11 @@ class GaussianSampler:
             len(new),
             avatar.num_gaussians,
         )
+
+    def _screen_limit(self, frame) -> float:
+        """The largest screen radius a Gaussian may keep, pixels."""
+        side = max(frame.camera.width, frame.camera.height)
+        return self.config.prune_screen_fraction * side
 
     def state(self) -> dict:
         """The checkpoint entries: ``accumulator`` (the UV error) and ``max_radius``."""
