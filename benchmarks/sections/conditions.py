@@ -14,6 +14,7 @@ rebuilt without refitting, and a change to the model or a kernel refits.
 
 from __future__ import annotations
 
+import datetime
 import hashlib
 import json
 from dataclasses import asdict, replace
@@ -58,18 +59,9 @@ still scored, so its gain shows alone."""
 REMEDIES = {"paper model": PAPER_MODEL, "quick preset": {}}
 """Overrides of today's quick preset."""
 
-RUNS = [
-    ("default", "paper model"),
-    ("default", "quick preset"),
-    ("oracle: exact tracking", "quick preset"),
-    ("oracle: no hair", "quick preset"),
-    ("oracle: flat light", "quick preset"),
-    ("key light", "quick preset"),
-    ("hair strands", "quick preset"),
-    ("hard", "quick preset"),
-]
-"""What each condition costs and what the remedies win back (each fit ~6 min at 256² on
-2 cores)."""
+RUNS = [(subject, remedy) for subject in SUBJECTS for remedy in REMEDIES]
+"""Every subject under every remedy: what each condition costs and what the remedies win
+back (each fit ~4-6 min at 256² on 2 cores)."""
 
 CONDITIONS = [
     # (condition, subject with it, its oracle)
@@ -143,6 +135,7 @@ def fit_once(subject_name: str, remedy: str) -> dict:
         )
     }
     scores.update(
+        measured=datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC"),
         psnr_exact_flame=oracle.psnr,
         psnr_exact_flame_full=oracle.psnr_full,
         subject=subject_name,
@@ -173,6 +166,17 @@ def _cell(r: dict | None, key: str) -> str:
     return "—" if r is None or r.get(key) is None else f"{r[key]:.2f}"
 
 
+def _when(runs: list[dict]) -> str:
+    """Which rows were measured after the section's date (added to a stored report by
+    fitting only them, the code unchanged in what it computes)."""
+    later = [r for r in runs if r.get("measured")]
+    if not later:
+        return ""
+    dates = sorted({r["measured"] for r in later})
+    names = ", ".join(f"{r['subject']} × {r['remedy']}" for r in later)
+    return f" Rows {names} were measured {dates[0]} to {dates[-1]}."
+
+
 def render(results: dict, figures: Path) -> str:
     runs = {(r["subject"], r["remedy"]): r for r in results["runs"]}
     remedy_rows = []
@@ -186,12 +190,20 @@ def render(results: dict, figures: Path) -> str:
     first, last = "paper model", "quick preset"
     subject_rows = []
     for name, (_, what) in SUBJECTS.items():
+        for remedy in REMEDIES:
+            r = runs.get((name, remedy))
+            if r is None:
+                continue  # not measured in this report
+            keys = ("psnr", "psnr_full", "psnr_refined", "psnr_refined_full")
+            keys += ("psnr_exact_flame", "psnr_mesh_only")
+            subject_rows.append([name, what, remedy, *(_cell(r, k) for k in keys)])
+    gains = []
+    for name in SUBJECTS:
         a, b = runs.get((name, first)), runs.get((name, last))
-        if a is None and b is None:
-            continue  # not measured in this report
-        cells = [(a, "psnr"), (a, "psnr_refined"), (b, "psnr"), (b, "psnr_refined")]
-        cells += [(b, "psnr_full"), (b, "psnr_refined_full"), (b, "psnr_exact_flame")]
-        subject_rows.append([name, what, *(_cell(r, k) for r, k in cells)])
+        if a is None or b is None:
+            continue
+        keys = ("psnr", "psnr_full", "psnr_refined", "psnr_refined_full")
+        gains.append([name, *(f"{b[k] - a[k]:+.2f}" for k in keys)])
     costs = []
     for condition, subject, oracle in CONDITIONS:
         row = [condition, subject, oracle]
@@ -211,7 +223,7 @@ def render(results: dict, figures: Path) -> str:
             f"frame's FLAME row against the frozen avatar ({quick['refine_steps']} steps at "
             f"≤ 256 px, then {quick['refine_full_steps']} at full size), `exact FLAME` with the "
             "subject's true parameters (an oracle only a synthetic subject has). One fit per "
-            "row (seed 0).",
+            "row (seed 0)." + _when(results["runs"]),
             "**The remedies on the default subject** (paper model: the paper's FLAME rates, "
             "no offset map, no silhouette term; both with test-time refinement scored):",
             table(
@@ -226,21 +238,24 @@ def render(results: dict, figures: Path) -> str:
                 ],
                 remedy_rows,
             ),
-            "**Each condition, paper model vs today's quick preset:**",
+            "**Each condition × remedy** (the paper model and today's quick preset on every "
+            "subject; in the mask and on the full image):",
             table(
                 [
                     "subject",
                     "what",
-                    "paper: psnr",
-                    "paper: refined",
-                    "quick: psnr",
-                    "quick: refined",
-                    "quick: psnr_full",
-                    "quick: refined_full",
-                    "quick: exact FLAME",
+                    "model",
+                    "psnr",
+                    "psnr_full",
+                    "psnr_refined",
+                    "psnr_refined_full",
+                    "exact FLAME",
+                    "mesh only",
                 ],
                 subject_rows,
             ),
+            "**What the remedies win** (quick preset minus paper model, dB, per subject):",
+            table(["subject", "psnr", "psnr_full", "psnr_refined", "psnr_refined_full"], gains),
             "**What each condition still costs** (oracle minus subject, dB; in-mask):",
             table(
                 [
