@@ -80,7 +80,7 @@ def from_arguments(
     return replace(config, **explicit)
 
 
-KEEPABLE_PARTS = ("mouth", "eyes", "offsets")
+KEEPABLE_PARTS = ("mouth", "eyes")
 """The model parts a fit leaves out when its scene analysis finds the scene lacks them
 (:mod:`urhead.train.scene`), and ``--keep`` forces back."""
 
@@ -198,7 +198,7 @@ class FitConfig:
         "",
         "parts of the model kept even where the scene analysis finds the training frames "
         "lack them, comma-separated: mouth (interior and teeth faces and texels), eyes "
-        "(per-frame eye joints), offsets (the Gaussians' offset map E), or all (ours)",
+        "(per-frame eye joints), or all (ours)",
     )
     seed: int = option(0, "random seed")
     background: str = option(

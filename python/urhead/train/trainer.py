@@ -227,10 +227,9 @@ class Trainer:
         scene_parts = {
             "mouth": "mouth interior and teeth (the mouth never opens)",
             "eyes": "per-frame eye joints (the eyes never move)",
-            "offsets": "Gaussian offset map E (nothing off the surface)",
         }
         for name, what in scene_parts.items():
-            if not self.parts[name].used and (name != "offsets" or c.gaussian_offset):
+            if not self.parts[name].used:
                 left_out.append(what)
         if not c.shading:
             left_out.append("pose-driven shading maps A")
