@@ -63,10 +63,14 @@ class Watch:
         step = StepGuard.step
         watch = self
 
-        def watched(guard, iteration, row, loss):
-            grads = guard.maps.grad, guard.frames.grad
-            watch.steps.append((iteration, row, float(loss), *grads))
-            return step(guard, iteration, row, loss)
+        def watched(guard, iteration, row, loss, map_samples=None):
+            maps_grad = guard.maps.grad
+            if map_samples is not None:  # the maps' gradient as the optimiser builds it
+                built = TextureGather(guard.maps)
+                built.record(*map_samples)
+                maps_grad = built.gradient()
+            watch.steps.append((iteration, row, float(loss), maps_grad, guard.frames.grad))
+            return step(guard, iteration, row, loss, map_samples)
 
         monkeypatch.setattr(StepGuard, "step", watched)
 
@@ -212,15 +216,12 @@ def test_case31_a_bad_step_is_rolled_back_to_the_last_good_state(
     poisoned = {"now": False}
 
     class PoisonedGather(TextureGather):
-        def gradient(self):
-            grad = super().gradient()
+        def samples(self):
+            uv, v_out = super().samples()
             if poisoned["now"] and poison == "nan_colour":
-                values = grad.values().clone()
-                values[len(values) // 2, 0] = float("nan")
-                grad = torch.sparse_coo_tensor(
-                    grad.indices(), values, grad.shape, is_coalesced=True, check_invariants=True
-                )
-            return grad
+                v_out = v_out.clone()
+                v_out[len(v_out) // 2, 0] = float("nan")
+            return uv, v_out
 
     monkeypatch.setattr(trainer_module, "TextureGather", PoisonedGather)
     trainer = Trainer(load_subject(plain), head, replace(FIT, iterations=100), tmp_path)

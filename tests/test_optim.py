@@ -6,7 +6,8 @@ import math
 import pytest
 import torch
 
-from urhead.errors import InvalidArgumentError, ShapeError
+from urhead.errors import DTypeError, InvalidArgumentError, ShapeError
+from urhead.ops import TextureGather
 from urhead.ops import _reference as ref
 from urhead.optim import RowJournal, SparseAdam
 
@@ -196,3 +197,75 @@ def test_a_reported_step_gives_channel_peaks_and_a_journal_undoes_its_steps_exac
     )
     after = (param, state["exp_avg"], state["exp_avg_sq"], state["steps"])
     assert all(torch.equal(a, b) for a, b in zip(after, before, strict=True))
+
+
+def lookups(g, count, channels):
+    """Bilinear lookups as a fit records them: UVs (some shared, one NaN, some outside the
+    atlas) and output gradients (some rows zero)."""
+    uv = torch.rand(count, 2, generator=g) * 1.2 - 0.1
+    uv[count // 2 :: 7] = uv[: len(uv[count // 2 :: 7])]  # several lookups of one point
+    uv[3] = float("nan")
+    v_out = torch.randn(count, channels, generator=g)
+    v_out[::5] = 0
+    return uv, v_out
+
+
+@pytest.mark.parametrize("threads", ["1", "2", "3"])
+def test_a_step_on_texture_samples_is_the_step_on_their_built_gradient_bit_for_bit(
+    monkeypatch, threads
+):
+    """``texture_samples`` builds each texel's gradient as the update reaches it: the
+    tables, step counts, reports and journal are those of a step on the coalesced gradient
+    ``TextureGather.gradient`` builds from the same lookups (a NaN output gradient in the
+    second step rejects the texels it reaches)."""
+    monkeypatch.setenv("URHEAD_NUM_THREADS", threads)
+    g = torch.Generator().manual_seed(5)
+    start = torch.randn(40, 56, C, generator=g)
+    built, sampled = start.clone(), start.clone()
+    opts = SparseAdam([built], lr=LR), SparseAdam([sampled], lr=LR)
+    journals = RowJournal(40 * 56, C), RowJournal(40 * 56, C)
+    for it in range(3):
+        uv, v_out = lookups(g, 3000, C)
+        if it == 1:
+            v_out[100, 2] = float("nan")
+        gather = TextureGather(built)
+        gather.record(uv, v_out)
+        built.grad = gather.gradient()
+        expected = opts[0].step_reported(journals[0])
+        built.grad = None
+        report = opts[1].step_reported(journals[1], (uv, v_out))
+        assert torch.equal(report.peaks, expected.peaks)
+        assert (report.rejected_rows, report.non_finite_rows) == (
+            expected.rejected_rows,
+            expected.non_finite_rows,
+        )
+        assert report.rejected_rows == (4 if it == 1 else 0)
+        for name in ("exp_avg", "exp_avg_sq", "steps"):
+            assert torch.equal(opts[1].state[sampled][name], opts[0].state[built][name])
+        assert torch.equal(sampled, built)
+        assert len(journals[1]) == len(journals[0]) > 0
+    state = opts[1].state[sampled]
+    journals[1].restore(
+        sampled.reshape(-1, C).numpy(),
+        state["exp_avg"].reshape(-1, C).numpy(),
+        state["exp_avg_sq"].reshape(-1, C).numpy(),
+        state["steps"].numpy(),
+    )
+    assert torch.equal(sampled, start)
+
+
+def test_texture_samples_are_checked():
+    p = torch.zeros(4, 4, 3)
+    uv, v_out = torch.rand(10, 2), torch.ones(10, 3)
+    opt = SparseAdam([p], lr=0.1)
+    with pytest.raises(ShapeError, match=r"v_out \(M, 3\)"):
+        opt.step_reported(None, (uv, torch.ones(10, 4)))
+    with pytest.raises(ShapeError, match="texture"):
+        flat = torch.zeros(16, 3)
+        SparseAdam([flat], lr=0.1).step_reported(None, (uv, v_out))
+    with pytest.raises(DTypeError, match="float32"):
+        opt.step_reported(None, (uv.double(), v_out))
+    p.grad = torch.ones(4, 4, 3)
+    with pytest.raises(InvalidArgumentError, match="not both"):
+        opt.step_reported(None, (uv, v_out))
+    assert torch.equal(p, torch.zeros(4, 4, 3))

@@ -4,9 +4,10 @@ SH degree 3, 24k Gaussians), forward + backward, against the DESIGN.md budget.
 The whole iteration is :meth:`Trainer.step` itself (render, loss, backward, sparse Adam on
 maps and FLAME rows, UV error accumulation). Each stage is also timed alone, forward and
 backward, from detached inputs with a random upstream gradient, with the avatar's own stage
-methods and, as in the trainer, its map lookups gathered into one sparse gradient built
-within the stage; "everything else" is the whole minus the stages (autograd bookkeeping, the loss's
-small terms, the FLAME-row Adam, error accumulation, Python).
+methods and, as in the trainer, its map lookups recorded in a ``TextureGather``; the maps'
+gradient is built inside the sparse Adam stage, from a real iteration's lookups, as the
+trainer's step builds it; "everything else" is the whole minus the stages (autograd
+bookkeeping, the loss's small terms, the FLAME-row Adam, error accumulation, Python).
 
 Every figure is a median of wall time and of process CPU time (user + system, all threads):
 on a shared machine the CPU time stays meaningful when the wall time is inflated by other
@@ -70,21 +71,21 @@ def stage_functions(trainer, state):
     g_verts = torch.randn(verts.shape, generator=g) * 1e-3
     g_image = torch.randn(h, w, 3, generator=g) * 1e-3
 
-    # As in Trainer.step, map lookups record their gradient in a TextureGather; each
-    # stage includes building its share of the sparse map gradient.
+    # As in Trainer.step, map lookups record their output gradient in a TextureGather
+    # (collected here, and applied by the sparse Adam stage).
     def skinning():
         gather = TextureGather(avatar.maps)
         v, r = avatar.skin(avatar.frame(frame.timestep))
         d, _ = avatar.displace(v, r, gather)
         d.backward(g_verts)
-        gather.gradient()
+        gather.samples()
         clear()
 
     def mesh_branch():
         gather = TextureGather(avatar.maps)
         m = avatar.shade_mesh(_leaf(displaced), offsets, rotations, camera, False, gather)
         m.image.backward(g_image)
-        gather.gradient()
+        gather.samples()
         clear()
 
     def lift_stage():
@@ -92,7 +93,7 @@ def stage_functions(trainer, state):
         out = avatar.lift_gaussians(_leaf(verts), rotations, camera, gather)
         tensors = [out.means, out.quats, out.scales, out.opacities, out.colors]
         torch.autograd.backward(tensors, [torch.ones_like(t) * 1e-3 for t in tensors])
-        gather.gradient()
+        gather.samples()
         clear()
 
     leaves = lift._replace(
@@ -112,17 +113,16 @@ def stage_functions(trainer, state):
         loss = 0.8 * l1(x, frame.image) + 0.2 * (1 - ssim(x, frame.image))
         loss.backward()
 
-    # A real iteration's sparse gradient for the optimiser stage.
+    # A real iteration's lookups for the optimiser stage, which builds their gradient as
+    # it updates (as Trainer.step does).
     gather = TextureGather(avatar.maps)
     out = avatar.render(params, camera, gather=gather)
     (out.image - frame.image).abs().mean().backward()
-    map_grad = gather.gradient()
+    map_samples = gather.samples()
     clear()
 
     def adam():
-        avatar.maps.grad = map_grad
-        state.maps_opt.step()
-        avatar.maps.grad = None
+        state.maps_opt.step_reported(None, map_samples)
 
     return {
         "skinning + displacement": skinning,
@@ -131,7 +131,14 @@ def stage_functions(trainer, state):
         "splatting": splatting,
         "SSIM + L1": loss_stage,
         "sparse Adam": adam,
-    }, int(map_grad._nnz())
+    }, touched_texels(avatar.maps, map_samples)
+
+
+def touched_texels(maps: torch.Tensor, samples) -> int:
+    """Distinct texels the lookups' gradient touches."""
+    grad = TextureGather(maps)
+    grad.record(*samples)
+    return int(grad.gradient()._nnz())
 
 
 def _move_tables(state, allocate) -> None:
@@ -235,7 +242,9 @@ def render(results: dict, figures: Path) -> str:
             f"{r['gaussians']:,} Gaussians, {r['uv_resolution']}² maps × {r['channels']} "
             f"channels, 512² image; one iteration's map gradient touches "
             f"{r['touched_texels']:,} texels. Stage times are each stage alone "
-            "(forward + backward from detached inputs); 'everything else' is the whole "
+            "(forward + backward from detached inputs; 'sparse Adam' builds the maps' "
+            "gradient from the iteration's lookups as it updates, as the trainer does); "
+            "'everything else' is the whole "
             "iteration minus them. Wall and process CPU time (user + system, all threads) "
             "are medians; CPU / wall is the parallelism reached, and CPU time is the figure "
             "to compare across runs on a busy machine. The whole iteration is timed after "

@@ -130,18 +130,35 @@ class SparseAdam(torch.optim.Optimizer):
         return loss
 
     @torch.no_grad()
-    def step_reported(self, journal: RowJournal | None = None) -> StepReport:
+    def step_reported(
+        self,
+        journal: RowJournal | None = None,
+        texture_samples: tuple[torch.Tensor, torch.Tensor] | None = None,
+    ) -> StepReport:
         """One step of an optimiser of a single table, saving the rows it changes into
         ``journal`` first (if given), and what it saw: the step's inspection costs no pass
-        over the gradient beyond the update's own."""
+        over the gradient beyond the update's own.
+
+        ``texture_samples``: the table is a texture ``(Ht, Wt, C)`` and its gradient is that
+        of bilinear lookups ``(uv (M, 2), v_out (M, C))``
+        (:meth:`urhead.ops.TextureGather.samples`), used instead of ``.grad`` (which must be
+        None): each texel's gradient row is summed as the update reaches it, never stored
+        — the result is bit for bit that of a step on the coalesced gradient of the same
+        lookups, one pass over the touched rows cheaper."""
         [[group, p]] = [(g, p) for g in self.param_groups for p in g["params"]]
-        report = self._step_table(group, p, journal)
+        report = self._step_table(group, p, journal, texture_samples)
         if report is None:
             return StepReport(torch.zeros(p.shape[-1]), 0, 0)
         return report
 
-    def _step_table(self, group: dict, p: torch.Tensor, journal=None) -> StepReport | None:
-        if p.grad is None:
+    def _step_table(
+        self, group: dict, p: torch.Tensor, journal=None, texture_samples=None
+    ) -> StepReport | None:
+        if texture_samples is not None and p.grad is not None:
+            raise InvalidArgumentError(
+                "a step takes its gradient from .grad or from texture_samples, not both"
+            )
+        if p.grad is None and texture_samples is None:
             return None
         channels = p.shape[-1]
         state = self.state[p]
@@ -151,17 +168,9 @@ class SparseAdam(torch.optim.Optimizer):
             state["exp_avg_sq"] = hugepages.zeros(p.shape)
             state["steps"] = hugepages.zeros((p.numel() // channels,), torch.int32)
             state["rejected_rows"] = 0
-        rows, values = rows_and_values(p, p.grad)
-        if rows.numel() == 0:
-            return None
         beta1, beta2 = group["betas"]
-        rejected, non_finite, peaks = native("sparse_adam_step")(
-            p.detach().numpy().reshape(-1, channels),
-            state["exp_avg"].numpy().reshape(-1, channels),
-            state["exp_avg_sq"].numpy().reshape(-1, channels),
-            state["steps"].numpy(),
-            rows.numpy(),
-            values.numpy(),
+        tables = (p.detach().numpy(), state["exp_avg"].numpy(), state["exp_avg_sq"].numpy())
+        settings = (
             _channel_lr(group["lr"], channels).numpy(),
             float(beta1),
             float(beta2),
@@ -169,5 +178,34 @@ class SparseAdam(torch.optim.Optimizer):
             num_threads(),
             journal,
         )
+        if texture_samples is not None:
+            uv, v_out = _checked_samples(p, *texture_samples)
+            found = native("sparse_adam_step_sampled")(
+                *tables, state["steps"].numpy(), uv, v_out, *settings
+            )
+        else:
+            rows, values = rows_and_values(p, p.grad)
+            if rows.numel() == 0:
+                return None
+            flat = (t.reshape(-1, channels) for t in tables)
+            found = native("sparse_adam_step")(
+                *flat, state["steps"].numpy(), rows.numpy(), values.numpy(), *settings
+            )
+        rejected, non_finite, peaks = found
         state["rejected_rows"] += rejected
         return StepReport(torch.from_numpy(peaks), rejected, non_finite)
+
+
+def _checked_samples(p: torch.Tensor, uv: torch.Tensor, v_out: torch.Tensor):
+    """``(uv, v_out)`` lookups of texture ``p (Ht, Wt, C)`` as float32 numpy arrays."""
+    if p.dim() != 3:
+        raise ShapeError(f"texture_samples need a texture (Ht, Wt, C), got {tuple(p.shape)}")
+    channels = p.shape[-1]
+    if uv.dim() != 2 or uv.shape[1] != 2 or v_out.shape != (uv.shape[0], channels):
+        raise ShapeError(
+            f"texture_samples must be uv (M, 2) and v_out (M, {channels}), got "
+            f"{tuple(uv.shape)} and {tuple(v_out.shape)}"
+        )
+    if uv.dtype != torch.float32 or v_out.dtype != torch.float32:
+        raise DTypeError(f"texture_samples must be float32, got {uv.dtype} and {v_out.dtype}")
+    return uv.detach().contiguous().numpy(), v_out.detach().contiguous().numpy()

@@ -183,14 +183,24 @@ class TextureGather:
         source = self.source
         source.grad = grad if source.grad is None else source.grad + grad
 
-    def gradient(self) -> torch.Tensor | None:
-        """The recorded lookups' texture gradient as a coalesced sparse COO tensor of
-        ``tex.shape`` (None when nothing was recorded); clears the record."""
+    def samples(self) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """The recorded lookups as ``(uv (M, 2), v_out (M, C))``, contiguous: the texture
+        gradient before it is built (None when nothing was recorded); clears the record.
+        :meth:`urhead.optim.SparseAdam.step_reported` applies it without building it."""
         if not self._uv:
             return None
         uv, v_out = torch.cat(self._uv), torch.cat(self._grad)
         self._uv.clear()
         self._grad.clear()
+        return uv, v_out
+
+    def gradient(self) -> torch.Tensor | None:
+        """The recorded lookups' texture gradient as a coalesced sparse COO tensor of
+        ``tex.shape`` (None when nothing was recorded); clears the record."""
+        recorded = self.samples()
+        if recorded is None:
+            return None
+        uv, v_out = recorded
         dtype = self.tex.dtype
         indices, values, _ = native("texture_backward")(
             self.tex.numpy(),

@@ -121,15 +121,23 @@ class StepGuard:
 
     # --- the per-iteration calls ----------------------------------------------------
 
-    def step(self, iteration: int, row: int, loss: torch.Tensor) -> bool:
+    def step(
+        self,
+        iteration: int,
+        row: int,
+        loss: torch.Tensor,
+        map_samples: tuple[torch.Tensor, torch.Tensor] | None = None,
+    ) -> bool:
         """Applies the step of ``iteration`` (training frame ``row``, its ``loss``, the
-        gradients on the two tables' ``.grad``) and judges it. Returns whether it stands;
-        a bad step is undone with the rest of its window and its group's rate cut."""
+        gradients on the two tables' ``.grad``, or for the maps their lookups
+        ``map_samples`` (:meth:`urhead.ops.TextureGather.samples`)) and judges it. Returns
+        whether it stands; a bad step is undone with the rest of its window and its group's
+        rate cut."""
         value = float(loss)
         loss_problem = self._judge_loss(value, row)
         if loss_problem is None and self._window_due:  # the loss vouches for the state
             self._begin_window(iteration)
-        maps = self.maps_opt.step_reported(self.journal)
+        maps = self.maps_opt.step_reported(self.journal, map_samples)
         frames = self.frames_opt.step_reported()
         channel_peaks = {"maps": maps.peaks, "frames": frames.peaks}
         peaks = torch.stack([channel_peaks[g.table][g.channels].amax() for g in self.groups])

@@ -308,7 +308,9 @@ class Trainer:
         for group in state.maps_opt.param_groups:
             group["lr"] = state.map_lr * uv_lr_factor(c, it)
         row_params = F.embedding(torch.tensor([row]), avatar.frame_params, sparse=True)[0]
-        gather = TextureGather(avatar.maps, accumulate=True)  # backward fills maps.grad
+        # The maps' gradient stays as the lookups' samples: the optimiser builds it as it
+        # updates (one pass over the touched texels fewer than a built gradient).
+        gather = TextureGather(avatar.maps)
         render = avatar.render(
             avatar.split_params(row_params),
             frame.camera,
@@ -320,7 +322,7 @@ class Trainer:
         )
         loss = self.objective(render, frame)
         loss.backward()
-        if state.guard.step(it, row, loss.detach()):  # applies the step, or undoes it
+        if state.guard.step(it, row, loss.detach(), gather.samples()):  # applies or undoes
             state.sampler.observe(render, frame)
         else:
             state.sampler.prune_oversized(avatar, render, frame)

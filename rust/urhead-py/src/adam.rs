@@ -3,7 +3,11 @@
 
 use numpy::{PyArrayDyn, PyReadonlyArrayDyn, PyReadwriteArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
-use urhead_core::adam::{sparse_adam_step as step, AdamConfig, RowJournal as CoreJournal, SparseAdamState};
+use urhead_core::adam::{
+    sparse_adam_step as step, sparse_adam_step_sampled as step_sampled, AdamConfig,
+    RowJournal as CoreJournal, SparseAdamState, StepReport,
+};
+use urhead_core::raster::texture_gradient_entries;
 
 use crate::arrays::{array, data};
 use crate::errors::{py_err, InvalidArgumentError};
@@ -97,22 +101,100 @@ pub fn sparse_adam_step<'py>(
 ) -> PyResult<(usize, usize, Bound<'py, PyArrayDyn<f32>>)> {
     let channels = lr.len();
     let mut state = adam_state(&mut param, &mut exp_avg, &mut exp_avg_sq, &mut steps, channels)?;
-    let (rows, grads, lr) = (data(&rows, "rows")?, data(&grads, "grads")?, data(&lr, "lr")?);
-    let config = AdamConfig { beta1, beta2, eps };
-    let journal = journal.as_deref_mut().map(|j| &mut j.journal);
-    let report = py
-        .allow_threads(|| {
-            with_threads(num_threads, || {
-                step(&mut state, rows, grads, lr, &config, journal)
-            })
+    let (rows, grads) = (data(&rows, "rows")?, data(&grads, "grads")?);
+    let settings = Settings::new(&lr, beta1, beta2, eps, num_threads, journal.as_deref_mut())?;
+    settings.run(py, channels, |lr, config, journal| {
+        step(&mut state, rows, grads, lr, config, journal)
+    })
+}
+
+/// [`sparse_adam_step`] of a texture table `param (Ht, Wt, C)` whose gradient is that of
+/// bilinear lookups at `uv (N, 2)` with output gradient `v_out (N, C)`: built and applied
+/// in one pass, never stored. The same result, bit for bit, as the step on the coalesced
+/// gradient `texture_backward` gives for the same lookups.
+#[pyfunction]
+#[pyo3(signature = (param, exp_avg, exp_avg_sq, steps, uv, v_out, lr, beta1, beta2, eps, num_threads, journal=None))]
+#[allow(clippy::too_many_arguments)]
+pub fn sparse_adam_step_sampled<'py>(
+    py: Python<'py>,
+    mut param: PyReadwriteArrayDyn<'_, f32>,
+    mut exp_avg: PyReadwriteArrayDyn<'_, f32>,
+    mut exp_avg_sq: PyReadwriteArrayDyn<'_, f32>,
+    mut steps: PyReadwriteArrayDyn<'_, i32>,
+    uv: PyReadonlyArrayDyn<'_, f32>,
+    v_out: PyReadonlyArrayDyn<'_, f32>,
+    lr: PyReadonlyArrayDyn<'_, f32>,
+    beta1: f64,
+    beta2: f64,
+    eps: f64,
+    num_threads: usize,
+    mut journal: Option<PyRefMut<'_, RowJournal>>,
+) -> PyResult<(usize, usize, Bound<'py, PyArrayDyn<f32>>)> {
+    let &[height, width, channels] = param.shape() else {
+        return Err(InvalidArgumentError::new_err(format!(
+            "param must be a texture (Ht, Wt, C), got shape {:?}",
+            param.shape()
+        )));
+    };
+    let mut state = adam_state(&mut param, &mut exp_avg, &mut exp_avg_sq, &mut steps, channels)?;
+    let (uv, v_out) = (data(&uv, "uv")?, data(&v_out, "v_out")?);
+    let settings = Settings::new(&lr, beta1, beta2, eps, num_threads, journal.as_deref_mut())?;
+    settings.run(py, channels, |lr, config, journal| {
+        let texels = texture_gradient_entries(height, width, channels, uv, v_out)?;
+        step_sampled(&mut state, &texels, v_out, lr, config, journal)
+    })
+}
+
+/// What both steps take besides the tables and the gradient.
+struct Settings<'a> {
+    lr: &'a [f32],
+    config: AdamConfig,
+    num_threads: usize,
+    journal: Option<&'a mut CoreJournal>,
+}
+
+impl<'a> Settings<'a> {
+    fn new(
+        lr: &'a PyReadonlyArrayDyn<'_, f32>,
+        beta1: f64,
+        beta2: f64,
+        eps: f64,
+        num_threads: usize,
+        journal: Option<&'a mut RowJournal>,
+    ) -> PyResult<Self> {
+        Ok(Self {
+            lr: data(lr, "lr")?,
+            config: AdamConfig { beta1, beta2, eps },
+            num_threads,
+            journal: journal.map(|j| &mut j.journal),
         })
-        .map_err(py_err)?;
-    let peaks = array(py, report.peaks, &[channels])?;
-    Ok((report.rejected_rows, report.non_finite_rows, peaks))
+    }
+
+    /// Runs `step` without the GIL on the step's threads; returns its report as
+    /// `(rejected_rows, non_finite_rows, peaks (C,))`.
+    fn run<'py>(
+        self,
+        py: Python<'py>,
+        channels: usize,
+        step: impl FnOnce(&[f32], &AdamConfig, Option<&mut CoreJournal>) -> urhead_core::Result<StepReport> + Send,
+    ) -> PyResult<(usize, usize, Bound<'py, PyArrayDyn<f32>>)> {
+        let Self {
+            lr,
+            config,
+            num_threads,
+            journal,
+        } = self;
+        let report = py
+            .allow_threads(|| with_threads(num_threads, || step(lr, &config, journal)))
+            .map_err(py_err)?;
+        let peaks = array(py, report.peaks, &[channels])?;
+        Ok((report.rejected_rows, report.non_finite_rows, peaks))
+    }
 }
 
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(sparse_adam_step, m)?)?;
+    m.add_function(wrap_pyfunction!(sparse_adam_step_sampled, m)?)?;
     m.add_class::<RowJournal>()?;
     Ok(())
 }

@@ -17,6 +17,10 @@
 //! non-finite; with a [`RowJournal`] it also saves every row before first changing it, so a
 //! bad step (or window of steps) can be undone bit for bit. All of it is gathered in the
 //! step's own pass over the rows, where the data is already in cache.
+//!
+//! A texture table's gradient can also come unsummed, as the entries of its lookups
+//! ([`sparse_adam_step_sampled`]): each texel's row is summed as the step reaches it, so a
+//! fit never stores (or pages in) the `(K, C)` gradient and reads it back.
 
 mod journal;
 
@@ -27,6 +31,7 @@ use journal::SaveSlots;
 
 use crate::error::{check_len, Error, Result};
 use crate::memory::prefetch;
+use crate::raster::TexelEntries;
 
 /// Rows handled per parallel work item.
 const ROW_CHUNK: usize = 256;
@@ -101,6 +106,98 @@ pub fn sparse_adam_step(
     journal: Option<&mut RowJournal>,
 ) -> Result<StepReport> {
     let c = state.channels;
+    check_len(
+        "grads",
+        grads,
+        rows.len() * c,
+        &format!("(K, C) = ({}, {c})", rows.len()),
+    )?;
+    step_rows(
+        state,
+        rows,
+        &StoredRows { grads, channels: c },
+        lr,
+        config,
+        journal,
+    )
+}
+
+/// One sparse step of a table that is a texture `(Ht, Wt, C)` (rows are texels, row-major),
+/// its gradient given as the unsummed entries of texture lookups' gradient `v_out (N, C)`
+/// ([`texture_gradient_entries`](crate::raster::texture_gradient_entries)): each texel's
+/// row is summed as the step reaches it, so the `(K, C)` gradient is never stored. The same
+/// result, bit for bit, as [`sparse_adam_step`] on the coalesced gradient
+/// ([`texture_backward`](crate::raster::texture_backward)) of the same lookups.
+pub fn sparse_adam_step_sampled(
+    state: &mut SparseAdamState<'_>,
+    texels: &TexelEntries<f32>,
+    v_out: &[f32],
+    lr: &[f32],
+    config: &AdamConfig,
+    journal: Option<&mut RowJournal>,
+) -> Result<StepReport> {
+    let (c, n) = (state.channels, state.param.len() / state.channels.max(1));
+    if texels.channels() != c || texels.texel_count() != n {
+        return Err(Error::Shape {
+            arg: "texels",
+            expected: format!("entries of a texture of the table's {n} rows × {c} channels"),
+            got: format!("{} texels × {} channels", texels.texel_count(), texels.channels()),
+        });
+    }
+    let rows: Vec<i64> = (0..texels.len()).map(|k| texels.texel(k) as i64).collect();
+    step_rows(state, &rows, &SampledRows { texels, v_out }, lr, config, journal)
+}
+
+/// Where a step's gradient rows come from.
+trait RowGradients: Sync {
+    /// Row `k`'s gradient `(C,)`: stored, or summed into `scratch`.
+    fn row<'a>(&'a self, k: usize, scratch: &'a mut [f32]) -> &'a [f32];
+    /// Starts loading what row `k` reads, if it is not stored in order.
+    fn prefetch(&self, _k: usize) {}
+}
+
+/// A coalesced gradient's values `(K, C)`.
+struct StoredRows<'a> {
+    grads: &'a [f32],
+    channels: usize,
+}
+
+impl RowGradients for StoredRows<'_> {
+    #[inline(always)]
+    fn row<'a>(&'a self, k: usize, _scratch: &'a mut [f32]) -> &'a [f32] {
+        &self.grads[k * self.channels..(k + 1) * self.channels]
+    }
+}
+
+/// Texture lookups' output gradient and its entries per texel.
+struct SampledRows<'a> {
+    texels: &'a TexelEntries<f32>,
+    v_out: &'a [f32],
+}
+
+impl RowGradients for SampledRows<'_> {
+    #[inline(always)]
+    fn row<'a>(&'a self, k: usize, scratch: &'a mut [f32]) -> &'a [f32] {
+        self.texels.sum_into(k, self.v_out, scratch);
+        scratch
+    }
+
+    #[inline(always)]
+    fn prefetch(&self, k: usize) {
+        self.texels.prefetch(k, self.v_out);
+    }
+}
+
+/// The step over `rows` (validated here) with each row's gradient from `grads`.
+fn step_rows<G: RowGradients>(
+    state: &mut SparseAdamState<'_>,
+    rows: &[i64],
+    grads: &G,
+    lr: &[f32],
+    config: &AdamConfig,
+    journal: Option<&mut RowJournal>,
+) -> Result<StepReport> {
+    let c = state.channels;
     if c == 0 {
         return Err(Error::Shape {
             arg: "param",
@@ -118,12 +215,6 @@ pub fn sparse_adam_step(
         &format!("(N, C) = ({n}, {c})"),
     )?;
     check_len("steps", state.steps, n, &format!("(N,) = ({n},)"))?;
-    check_len(
-        "grads",
-        grads,
-        rows.len() * c,
-        &format!("(K, C) = ({}, {c})", rows.len()),
-    )?;
     check_len("lr", lr, c, &format!("(C,) = ({c},)"))?;
     config.validate()?;
     if let Some(i) = lr.iter().position(|x| !(*x >= 0.0 && x.is_finite())) {
@@ -193,8 +284,7 @@ pub fn sparse_adam_step(
         offset = end;
     }
     let chunk_reports = work.into_par_iter().map(|(k, base, chunk, p, m, v, s, saves)| {
-        let grads = &grads[k * ROW_CHUNK * c..(k * ROW_CHUNK + chunk.len()) * c];
-        step_chunk(chunk, base, p, m, v, s, saves, grads, lr, config)
+        step_chunk(chunk, base, p, m, v, s, saves, grads, k * ROW_CHUNK, lr, config)
     });
     let empty = || StepReport {
         rejected_rows: 0,
@@ -231,9 +321,11 @@ pub fn sparse_adam_step(
 const PREFETCH_ROWS: usize = 16;
 
 /// One chunk's rows: `chunk` holds table rows (strictly increasing, all ≥ `base`), the
-/// tables are views starting at row `base`, `grads` is `(chunk.len(), C)`. With `saves`,
-/// the rows flagged new are written, as they are before this step, into the slots in order.
-fn step_chunk(
+/// tables are views starting at row `base`, row `i` of the chunk has gradient row
+/// `first + i` of `grads`. With `saves`, the rows flagged new are written, as they are
+/// before this step, into the slots in order.
+#[allow(clippy::too_many_arguments)]
+fn step_chunk<G: RowGradients>(
     chunk: &[i64],
     base: usize,
     p: &mut [f32],
@@ -241,7 +333,8 @@ fn step_chunk(
     v: &mut [f32],
     s: &mut [i32],
     mut saves: Option<(&[bool], SaveSlots<'_>)>,
-    grads: &[f32],
+    grads: &G,
+    first: usize,
     lr: &[f32],
     config: &AdamConfig,
 ) -> StepReport {
@@ -252,14 +345,17 @@ fn step_chunk(
         peaks: vec![0.0; c],
         saved_rows: 0,
     };
-    for (i, (&row, g)) in chunk.iter().zip(grads.chunks_exact(c)).enumerate() {
+    let mut scratch = vec![0f32; c];
+    for (i, &row) in chunk.iter().enumerate() {
         if let Some(&ahead) = chunk.get(i + PREFETCH_ROWS) {
             let r = ahead as usize - base;
             for table in [&*p, &*m, &*v] {
                 prefetch(&table[r * c..(r + 1) * c]);
             }
             prefetch(&s[r..r + 1]);
+            grads.prefetch(first + i + PREFETCH_ROWS);
         }
+        let g = grads.row(first + i, &mut scratch);
         let local = row as usize - base;
         let rows = local * c..(local + 1) * c;
         if let Some((new, slots)) = saves.as_mut() {
@@ -376,6 +472,83 @@ mod tests {
             vec![0.0; n * c],
             vec![0; n],
         )
+    }
+
+    type Tables = (Vec<f32>, Vec<f32>, Vec<f32>, Vec<i32>);
+
+    fn as_state(tables: &mut Tables, channels: usize) -> SparseAdamState<'_> {
+        let (param, exp_avg, exp_avg_sq, steps) = tables;
+        SparseAdamState {
+            param,
+            exp_avg,
+            exp_avg_sq,
+            steps,
+            channels,
+        }
+    }
+
+    #[test]
+    fn a_step_on_texture_entries_is_the_step_on_the_built_gradient() {
+        use crate::raster::{texture_backward, texture_gradient_entries};
+        let (h, w, c) = (9, 7, 3);
+        let lr = [0.1, 0.01, 0.001];
+        let uv: Vec<f32> = (0..400).map(|i| ((i * 37 % 101) as f32 / 90.0) - 0.05).collect();
+        let mut v_out: Vec<f32> = (0..200 * c).map(|i| ((i * 13 % 17) as f32 - 8.0) * 0.1).collect();
+        v_out[7 * c + 1] = f32::NAN; // rejects the texels sample 7 reaches
+        let tables = state(h * w, c);
+        let (mut built, mut sampled) = (tables.clone(), tables);
+        let grad = texture_backward(&built.0, h, w, c, &uv, &v_out, true, false)
+            .unwrap()
+            .v_tex
+            .unwrap();
+        let rows: Vec<i64> = (0..grad.nnz)
+            .map(|k| grad.indices[k] * w as i64 + grad.indices[grad.nnz + k])
+            .collect();
+        let texels = texture_gradient_entries(h, w, c, &uv, &v_out).unwrap();
+        let mut journals = (RowJournal::new(h * w, c), RowJournal::new(h * w, c));
+        let expected = sparse_adam_step(
+            &mut as_state(&mut built, c),
+            &rows,
+            &grad.values,
+            &lr,
+            &CONFIG,
+            Some(&mut journals.0),
+        )
+        .unwrap();
+        let report = sparse_adam_step_sampled(
+            &mut as_state(&mut sampled, c),
+            &texels,
+            &v_out,
+            &lr,
+            &CONFIG,
+            Some(&mut journals.1),
+        )
+        .unwrap();
+        assert!(report.rejected_rows > 0);
+        assert_eq!(report, expected);
+        assert_eq!(texels.len(), grad.nnz);
+        let bits = |t: &[f32]| t.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&sampled.0), bits(&built.0));
+        assert_eq!(bits(&sampled.1), bits(&built.1));
+        assert_eq!(bits(&sampled.2), bits(&built.2));
+        assert_eq!(sampled.3, built.3);
+        assert_eq!(journals.0.len(), journals.1.len());
+    }
+
+    #[test]
+    fn texture_entries_of_another_table_are_refused() {
+        use crate::raster::texture_gradient_entries;
+        let texels = texture_gradient_entries(4, 4, 2, &[0.5f32, 0.5], &[1.0, 1.0]).unwrap();
+        let (mut p, mut m, mut v, mut s) = state(15, 2);
+        let mut st = SparseAdamState {
+            param: &mut p,
+            exp_avg: &mut m,
+            exp_avg_sq: &mut v,
+            steps: &mut s,
+            channels: 2,
+        };
+        let err = sparse_adam_step_sampled(&mut st, &texels, &[1.0, 1.0], &[0.1, 0.1], &CONFIG, None);
+        assert!(matches!(err, Err(Error::Shape { arg: "texels", .. })));
     }
 
     #[test]

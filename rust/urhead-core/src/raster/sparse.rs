@@ -61,15 +61,87 @@ impl Buckets {
     }
 }
 
-/// The sparse texel gradient of `v_out (N, C)`; fills `v_uv (N, 2)` in the same pass over
-/// the samples when given (it reads the same texels and output gradients).
-pub(crate) fn sparse_texel_gradient<T: Real>(
+/// The entries of a texel gradient before they are summed: every `(texel, sample,
+/// weight)` a sample with a finite UV and a non-zero output gradient gives a non-zero
+/// bilinear weight, sorted by texel (stable: samples in order within a texel), with the
+/// run each distinct texel occupies. Summing a run gives that texel's gradient row, which
+/// [`sparse_texel_gradient`] stores and a fused optimiser step
+/// ([`crate::adam::sparse_adam_step_sampled`]) consumes as it goes, never storing it.
+#[derive(Debug, Clone)]
+pub struct TexelEntries<T> {
+    entries: Vec<Entry<T>>,
+    /// `(K + 1,)` where each distinct texel's run starts in `entries`, then the end.
+    starts: Vec<usize>,
+    /// The texture's `Ht · Wt` and `C`.
+    texel_count: usize,
+    channels: usize,
+}
+
+impl<T: Real> TexelEntries<T> {
+    /// Distinct texels `K`.
+    pub fn len(&self) -> usize {
+        self.starts.len() - 1
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The texture's channels `C`.
+    pub fn channels(&self) -> usize {
+        self.channels
+    }
+
+    /// The texture's texels `Ht · Wt`.
+    pub fn texel_count(&self) -> usize {
+        self.texel_count
+    }
+
+    /// The flat index (`row · Wt + column`) of the `k`-th distinct texel, increasing in `k`.
+    #[inline(always)]
+    pub fn texel(&self, k: usize) -> usize {
+        self.entries[self.starts[k]].texel as usize
+    }
+
+    /// Texel `k`'s gradient `(C,)` into `dst`: its entries' `weight · v_out[sample]`
+    /// summed in sample order, the first written, not added (so `dst` is never read).
+    #[inline(always)]
+    pub fn sum_into(&self, k: usize, v_out: &[T], dst: &mut [T]) {
+        let c = self.channels;
+        let run = &self.entries[self.starts[k]..self.starts[k + 1]];
+        let row = |e: &Entry<T>| &v_out[e.sample as usize * c..(e.sample as usize + 1) * c];
+        for (d, g) in dst.iter_mut().zip(row(&run[0])) {
+            *d = run[0].weight * *g;
+        }
+        for e in &run[1..] {
+            for (d, g) in dst.iter_mut().zip(row(e)) {
+                *d += e.weight * *g;
+            }
+        }
+    }
+
+    /// Starts loading the output-gradient rows texel `k` sums (its first two entries).
+    #[inline(always)]
+    pub fn prefetch(&self, k: usize, v_out: &[T]) {
+        let c = self.channels;
+        if let Some(&start) = self.starts.get(k) {
+            for e in self.entries[start..].iter().take(2) {
+                prefetch(&v_out[e.sample as usize * c..(e.sample as usize + 1) * c]);
+            }
+        }
+    }
+}
+
+/// The entries of the texel gradient of `v_out (N, C)` at `uv (N, 2)`; fills `v_uv (N, 2)`
+/// in the same pass over the samples when given (it reads the same texels and output
+/// gradients). `uv` and `v_out` must have been checked against `shape`.
+pub(crate) fn texel_entries<T: Real>(
     shape: &TexShape,
     tex: &[T],
     uv: &[T],
     v_out: &[T],
     v_uv: Option<&mut [T]>,
-) -> Result<SparseTexels<T>> {
+) -> TexelEntries<T> {
     let c = shape.channels;
     let n = uv.len() / 2;
     let buckets = Buckets::new(shape);
@@ -112,7 +184,8 @@ pub(crate) fn sparse_texel_gradient<T: Real>(
         })
         .collect();
 
-    // 2. Per bucket: gather in chunk order, sort by texel (stable), count unique texels.
+    // 2. Per bucket: gather in chunk order, sort by texel (stable); buckets are in texel
+    // order, so their concatenation is sorted.
     let sorted: Vec<Vec<Entry<T>>> = (0..buckets.count)
         .into_par_iter()
         .map(|b| {
@@ -128,51 +201,64 @@ pub(crate) fn sparse_texel_gradient<T: Real>(
         })
         .collect();
     drop(chunks);
-    let unique: Vec<usize> = sorted.iter().map(|e| count_unique(e)).collect();
-    let nnz: usize = unique.iter().sum();
+    let entries = sorted.concat();
+    let mut starts: Vec<usize> = Vec::with_capacity(entries.len() / 2 + 1);
+    for (i, e) in entries.iter().enumerate() {
+        if i == 0 || entries[i - 1].texel != e.texel {
+            starts.push(i);
+        }
+    }
+    starts.push(entries.len());
+    TexelEntries {
+        entries,
+        starts,
+        texel_count: shape.height * shape.width,
+        channels: c,
+    }
+}
 
-    // 3. Sum each texel's entries in sample order into disjoint slices of the output. The
-    // first entry is written, not added, so fresh output pages are never read first.
+/// The sparse texel gradient of `v_out (N, C)`; fills `v_uv (N, 2)` in the same pass over
+/// the samples when given.
+pub(crate) fn sparse_texel_gradient<T: Real>(
+    shape: &TexShape,
+    tex: &[T],
+    uv: &[T],
+    v_out: &[T],
+    v_uv: Option<&mut [T]>,
+) -> Result<SparseTexels<T>> {
+    let c = shape.channels;
+    let texels = texel_entries(shape, tex, uv, v_out, v_uv);
+    let nnz = texels.len();
+
+    // 3. Each texel's sum into disjoint slices of the output, in fixed blocks of texels.
     let mut indices: Vec<i64> = zeroed("texture gradient indices (2, nnz)", 2 * nnz)?;
     let mut values: Vec<T> = zeroed("texture gradient values (nnz, C)", nnz * c)?;
     let (rows, cols) = indices.split_at_mut(nnz);
-    let mut parts = Vec::with_capacity(buckets.count);
-    let (mut rows, mut cols, mut vals) = (rows, cols, values.as_mut_slice());
-    for &k in &unique {
-        let (r, rest_r) = rows.split_at_mut(k);
-        let (cl, rest_c) = cols.split_at_mut(k);
-        let (v, rest_v) = vals.split_at_mut(k * c);
-        parts.push((r, cl, v));
-        (rows, cols, vals) = (rest_r, rest_c, rest_v);
-    }
-    parts
-        .into_par_iter()
-        .zip(sorted.par_iter())
-        .for_each(|((rows, cols, vals), entries)| {
-            let runs = entries.chunk_by(|a, b| a.texel == b.texel);
-            let slots = rows.iter_mut().zip(cols.iter_mut()).zip(vals.chunks_exact_mut(c));
-            let row = |e: &Entry<T>| &v_out[e.sample as usize * c..(e.sample as usize + 1) * c];
-            let mut next = 0; // index of the entry after the current run
-            for (run, ((r, cl), dst)) in runs.zip(slots) {
-                next += run.len();
-                if let Some(ahead) = entries.get(next + PREFETCH_DISTANCE) {
-                    prefetch(row(ahead));
-                }
-                let texel = run[0].texel as usize;
+    rows.par_chunks_mut(TEXEL_BLOCK)
+        .zip(cols.par_chunks_mut(TEXEL_BLOCK))
+        .zip(values.par_chunks_mut(TEXEL_BLOCK * c))
+        .enumerate()
+        .for_each(|(block, ((rows, cols), vals))| {
+            let first = block * TEXEL_BLOCK;
+            for (i, ((r, cl), dst)) in rows
+                .iter_mut()
+                .zip(cols)
+                .zip(vals.chunks_exact_mut(c))
+                .enumerate()
+            {
+                let k = first + i;
+                texels.prefetch(k + PREFETCH_DISTANCE, v_out);
+                let texel = texels.texel(k);
                 *r = (texel / shape.width) as i64;
                 *cl = (texel % shape.width) as i64;
-                for (d, g) in dst.iter_mut().zip(row(&run[0])) {
-                    *d = run[0].weight * *g;
-                }
-                for e in &run[1..] {
-                    for (d, g) in dst.iter_mut().zip(row(e)) {
-                        *d += e.weight * *g;
-                    }
-                }
+                texels.sum_into(k, v_out, dst);
             }
         });
     Ok(SparseTexels { indices, values, nnz })
 }
+
+/// Texels per parallel work item when summing.
+const TEXEL_BLOCK: usize = 1024;
 
 /// Stable counting sort of entries by bucket; returns them with bucket offsets.
 fn partition<T: Copy>(entries: Vec<Entry<T>>, buckets: &Buckets) -> (Vec<Entry<T>>, Vec<usize>) {
@@ -219,14 +305,6 @@ fn radix_sort_by_texel<T: Copy>(mut entries: Vec<Entry<T>>, base: u32, span: usi
         shift += 8;
     }
     entries
-}
-
-fn count_unique<T>(sorted: &[Entry<T>]) -> usize {
-    if sorted.is_empty() {
-        0
-    } else {
-        1 + sorted.windows(2).filter(|w| w[0].texel != w[1].texel).count()
-    }
 }
 
 #[cfg(test)]

@@ -11,7 +11,7 @@
 
 use rayon::prelude::*;
 
-use super::sparse::{sparse_texel_gradient, SparseTexels};
+use super::sparse::{sparse_texel_gradient, texel_entries, SparseTexels, TexelEntries};
 use super::taps::{
     bilinear_taps, gradient_taps, prefetch_taps, uv_gradient, uv_gradient_ahead, Taps, TexShape,
     PREFETCH_DISTANCE, SAMPLE_CHUNK,
@@ -43,6 +43,18 @@ fn blend<T: Real>(o: &mut [T], rows: [&[T]; 4], w: [T; 4]) {
 }
 
 pub(crate) fn validate<T: Real>(tex: &[T], shape: &TexShape, uv: &[T]) -> Result<usize> {
+    let n = validate_layout(shape, uv)?;
+    check_len(
+        "tex",
+        tex,
+        shape.height * shape.width * shape.channels,
+        &format!("({}, {}, {})", shape.height, shape.width, shape.channels),
+    )?;
+    Ok(n)
+}
+
+/// The texture's sides and the UV array's length; returns the number of samples `N`.
+fn validate_layout<T: Real>(shape: &TexShape, uv: &[T]) -> Result<usize> {
     if shape.height == 0 || shape.width == 0 || shape.channels == 0 {
         return Err(Error::Shape {
             arg: "tex",
@@ -51,12 +63,6 @@ pub(crate) fn validate<T: Real>(tex: &[T], shape: &TexShape, uv: &[T]) -> Result
         });
     }
     checked_size("tex texels", &[shape.height, shape.width], MAX_TEXELS)?;
-    check_len(
-        "tex",
-        tex,
-        shape.height * shape.width * shape.channels,
-        &format!("({}, {}, {})", shape.height, shape.width, shape.channels),
-    )?;
     if uv.len() % 2 != 0 {
         return Err(Error::Shape {
             arg: "uv",
@@ -119,6 +125,31 @@ pub fn texture_forward<T: Real>(
         check_finite("tex", tex)?;
     }
     Ok(out)
+}
+
+/// The texture gradient of `v_out (N, C)` at `uv (N, 2)` for a `(Ht, Wt, C)` texture as
+/// its unsummed entries ([`TexelEntries`]): the same texels and sums [`texture_backward`]
+/// lists, for a consumer that sums each texel's row as it uses it.
+pub fn texture_gradient_entries<T: Real>(
+    height: usize,
+    width: usize,
+    channels: usize,
+    uv: &[T],
+    v_out: &[T],
+) -> Result<TexelEntries<T>> {
+    let shape = TexShape {
+        height,
+        width,
+        channels,
+    };
+    let n = validate_layout(&shape, uv)?;
+    check_len(
+        "v_out",
+        v_out,
+        n * channels,
+        &format!("(N, C) = ({n}, {channels})"),
+    )?;
+    Ok(texel_entries(&shape, &[], uv, v_out, None)) // the texture is read for v_uv only
 }
 
 /// Gradients of [`texture_backward`]; a field is `Some` exactly when it was asked for.
