@@ -15,7 +15,8 @@ how long and in which mode they were measured, so sections can be re-measured on
 
 Threads: urhead's kernels and torch both get ``--threads`` (default: all logical CPUs), so a
 ratio compares like with like; OMP_WAIT_POLICY=PASSIVE stops torch's idle OpenMP workers
-from spinning on the cores urhead's pool needs (see the README's note).
+from spinning on the cores urhead's pool needs (see the README's note). The allocator keeps
+what it frees, as in a fit (``urhead._memory.keep_freed_memory``, the command line's policy).
 """
 
 from __future__ import annotations
@@ -71,6 +72,9 @@ def main():
     import torch
 
     torch.set_num_threads(args.threads)
+    from urhead._memory import keep_freed_memory
+
+    keep_freed_memory()
     sys.path.insert(0, str(Path(__file__).parent))
     sys.path.insert(0, str(ROOT / "tests"))  # bench_lbs builds its model with the test helper
     import machine

@@ -27,6 +27,7 @@ import torch
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 from urhead._atomic import write_bytes_atomically, write_file_atomically
+from urhead._memory import keep_freed_memory
 from urhead._threads import configure_threads
 from urhead.config import FIT_PRESETS, FitConfig
 from urhead.data import load_subject
@@ -50,6 +51,7 @@ def main() -> None:
     parser.add_argument("--resume", action="store_true", help="continue an interrupted fit")
     args = parser.parse_args()
     configure_threads()
+    keep_freed_memory()
     start = time.perf_counter()
     subject_dir = args.subject
     if subject_dir is None:

@@ -96,10 +96,12 @@ def requested_command(argv: list[str]) -> str:
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser(requested_command(argv)).parse_args(argv)
+    from urhead._memory import keep_freed_memory
     from urhead._threads import configure_threads
 
     try:
         configure_threads()
+        keep_freed_memory()
         return int(args.run(args) or 0)
     except (ValueError, TypeError, OSError, MemoryError) as e:  # typed errors name the input
         print(f"urhead {args.command}: error: {e}", file=sys.stderr)

@@ -21,6 +21,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+from urhead._memory import keep_freed_memory
 from urhead._threads import configure_threads
 from urhead.config import FitConfig
 from urhead.train.command import add_fit_options, fit_config, fit_subject
@@ -145,6 +146,7 @@ def fit_in_worker(
     not every exception survives Ray's pickling (urhead's DatasetError does not). The
     traceback goes to the log, which Ray forwards to the driver."""
     configure_threads(cpus)
+    keep_freed_memory()
     start = time.perf_counter()
     with _fit_log_lines(Path(subject_dir).name) as log:
         try:
