@@ -539,14 +539,8 @@ mod tests {
     fn texture_entries_of_another_table_are_refused() {
         use crate::raster::texture_gradient_entries;
         let texels = texture_gradient_entries(4, 4, 2, &[0.5f32, 0.5], &[1.0, 1.0]).unwrap();
-        let (mut p, mut m, mut v, mut s) = state(15, 2);
-        let mut st = SparseAdamState {
-            param: &mut p,
-            exp_avg: &mut m,
-            exp_avg_sq: &mut v,
-            steps: &mut s,
-            channels: 2,
-        };
+        let mut tables = state(15, 2);
+        let mut st = as_state(&mut tables, 2);
         let err = sparse_adam_step_sampled(&mut st, &texels, &[1.0, 1.0], &[0.1, 0.1], &CONFIG, None);
         assert!(matches!(err, Err(Error::Shape { arg: "texels", .. })));
     }
