@@ -436,3 +436,39 @@ def test_sampler_prunes_a_runaway_gaussian_seen_in_a_rejected_step(head):
     old_index = sampler.max_radius.long()
     assert torch.equal(avatar.gaussian_uv, original_uv[old_index])
     assert not oversized[old_index].any() and runaway not in old_index.tolist()
+
+
+def test_frozen_maps_are_looked_up_once_per_uv_tensor_until_edited(head):
+    from urhead.ops import texture
+
+    avatar = make_avatar(head)
+    uv = avatar.gaussian_uv
+    first = avatar.lookup_fixed(uv)
+    assert torch.equal(first, texture(avatar.maps, uv))
+    assert avatar.lookup_fixed(uv) is first  # kept: a frozen avatar's rows do not change
+    with torch.no_grad():
+        before = avatar.render(avatar.frame(3), camera()).image
+    avatar.maps.mul_(0.5)  # an in-place edit bumps the maps' version: every row is stale
+    edited = avatar.lookup_fixed(uv)
+    assert edited is not first and torch.equal(edited, texture(avatar.maps, uv))
+    uv.add_(0.01)  # the UV points themselves edited
+    assert torch.equal(avatar.lookup_fixed(uv), texture(avatar.maps, uv))
+    avatar.maps = avatar.maps * 2  # other maps
+    assert torch.equal(avatar.lookup_fixed(uv), texture(avatar.maps, uv))
+    with torch.no_grad():
+        after = avatar.render(avatar.frame(3), camera()).image
+    assert not torch.equal(before, after)  # the render saw the edits
+
+
+def test_maps_in_training_are_never_kept(head):
+    avatar = make_avatar(head)
+    avatar.maps.requires_grad_(True)
+    uv = avatar.gaussian_uv
+    rows = avatar.lookup_fixed(uv)
+    assert rows.requires_grad and avatar.lookup_fixed(uv) is not rows
+    gather = TextureGather(avatar.maps)
+    assert avatar.lookup_fixed(uv, gather) is not avatar.lookup_fixed(uv, gather)
+    with torch.no_grad():
+        # Mid-fit scoring: no gradient asked, but the maps are still being trained (an
+        # optimiser may write them without bumping their version), so nothing is kept.
+        assert avatar.lookup_fixed(uv) is not avatar.lookup_fixed(uv)

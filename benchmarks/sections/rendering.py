@@ -8,6 +8,7 @@ from __future__ import annotations
 import base64
 import itertools
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -43,7 +44,9 @@ def frame(avatar, params, camera, stamps: list | None = None) -> torch.Tensor:
 
 def measure(num_gaussians: int, repeats: int) -> dict:
     trainer, state = paper_scene(num_gaussians)
-    avatar = state.avatar
+    # As `urhead render` holds a saved avatar: maps without gradient (frozen), the same
+    # tensors as the fit's.
+    avatar = replace(state.avatar, maps=state.avatar.maps.detach())
     record = trainer.subject.train[0]
     params = avatar.frame(record.timestep)
     camera = record.camera

@@ -188,6 +188,7 @@ class Avatar:
     _tables: HeadTables | None = field(default=None, init=False, repr=False)
     _rays: PixelRays = field(default_factory=PixelRays, init=False, repr=False)
     _face_verts: tuple | None = field(default=None, init=False, repr=False)
+    _frozen_rows: dict = field(default_factory=dict, init=False, repr=False)
 
     @property
     def num_expr(self) -> int:
@@ -277,9 +278,29 @@ class Avatar:
         """The maps at UV points (..., 2) → (..., channels), bilinear."""
         return texture(self.maps, uv) if gather is None else gather.sample(uv)
 
+    def lookup_fixed(self, uv: torch.Tensor, gather: TextureGather | None = None) -> torch.Tensor:
+        """:meth:`lookup` at UV points that stay put from frame to frame (the vertices', the
+        Gaussians'). While the maps are frozen — no gradient asked of them, as in a finished
+        or loaded avatar — the rows are kept and reused until the maps or ``uv`` change (an
+        in-place edit bumps either's version): a rendered sequence looks them up once, not
+        every frame. A fit's maps require grad, so its lookups are never kept. The rows
+        returned are shared: do not edit them in place."""
+        maps = self.maps
+        if gather is not None or maps.requires_grad or uv.requires_grad:
+            return self.lookup(uv, gather)
+        kept = self._frozen_rows
+        held = kept.get("maps")
+        if held is None or held[0] is not maps or held[1] != maps._version:
+            kept.clear()  # other maps, or these edited in place: every kept row is stale
+            kept["maps"] = (maps, maps._version)
+        entry = kept.get(id(uv))  # the entry holds uv itself, so its id is not reused
+        if entry is None or entry[1] != uv._version:
+            entry = kept[id(uv)] = (uv, uv._version, texture(maps, uv))
+        return entry[2]
+
     def displace(self, verts, rotations, gather=None) -> tuple[torch.Tensor, torch.Tensor]:
         """``(v̂ (V, 3), v̂ − v)``: each vertex moved by D along its posed normal."""
-        at_vertex = self.layout.split(self.lookup(self.tables().vertex_uv, gather))
+        at_vertex = self.layout.split(self.lookup_fixed(self.tables().vertex_uv, gather))
         vertex_normal = _rotate_normalize(rotations, at_vertex.normal)
         offsets = at_vertex.displacement[:, None] * vertex_normal
         return verts + offsets, offsets
@@ -330,7 +351,7 @@ class Avatar:
         scale, opacity and colour from the maps. The geometry is one kernel
         (:func:`~urhead.ops.lift_gaussians_geometry`)."""
         layout = self.layout
-        rows = self.lookup(self.gaussian_uv, gather)
+        rows = self.lookup_fixed(self.gaussian_uv, gather)
         samples = layout.split(rows)
         lift = samples.displacement
         if samples.offset is not None:
