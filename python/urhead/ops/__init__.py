@@ -7,6 +7,7 @@ from urhead.ops.interpolate import interpolate
 from urhead.ops.lbs import LbsOutput, lbs
 from urhead.ops.lift import LiftOutput, lift_gaussians_geometry
 from urhead.ops.rasterize import RasterOutput, UvRasterOutput, rasterize, rasterize_uv
+from urhead.ops.rotate import rotate_normalize
 from urhead.ops.shading import sh_shade
 from urhead.ops.splat import SplatOutput, normal_to_quat, rasterize_gaussians
 from urhead.ops.ssim import masked_l1, masked_ssim
@@ -30,6 +31,7 @@ __all__ = [
     "rasterize",
     "rasterize_gaussians",
     "rasterize_uv",
+    "rotate_normalize",
     "sh_shade",
     "texture",
 ]

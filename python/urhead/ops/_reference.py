@@ -654,6 +654,13 @@ def normalize_clamped(v: torch.Tensor) -> torch.Tensor:
     return v / v.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 
+def rotate_normalize(rotations, vectors, transpose=False):
+    """Reference of :func:`urhead.ops.rotate_normalize` — the avatar's ``bmm`` before the
+    kernel. Its ``|m|`` overflows where ``m²`` does (float32 beyond ~1.8e19, giving zero)."""
+    matrices = rotations.transpose(1, 2) if transpose else rotations
+    return normalize_clamped(torch.bmm(matrices, vectors[:, :, None])[..., 0])
+
+
 def lift_gaussians_geometry(verts, rotations, face_verts, bary, normals, lift, centre):
     """Reference of :func:`urhead.ops.lift_gaussians_geometry` — the plain-torch lift the
     avatar used before the kernel: ``(means, normals, quats, frames, view_dirs)``. Its

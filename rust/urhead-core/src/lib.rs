@@ -16,6 +16,7 @@ pub mod parallel;
 pub mod raster;
 pub mod raytrace;
 pub mod real;
+pub mod rotate;
 pub mod sh;
 pub mod shading;
 pub mod splat;

@@ -21,8 +21,9 @@
 use rayon::prelude::*;
 
 use crate::error::{check_finite, check_indices, check_len, checked_size, Error, Result};
-use crate::mat3::{matvec, matvec_t, M3, V3};
+use crate::mat3::{dot, matvec, matvec_t, M3, V3};
 use crate::memory::zeroed;
+use crate::rotate::{normalise, normalise_backward};
 use crate::Real;
 
 /// Gaussians per rayon task; fixed, so the partition does not depend on the thread count
@@ -30,8 +31,6 @@ use crate::Real;
 const CHUNK: usize = 1024;
 /// Vertices per rayon task of the gradient gather.
 const VERTEX_CHUNK: usize = 256;
-/// `normalise` divides by `max(|v|, NORM_FLOOR)`, as `v / v.norm().clamp_min(1e-12)`.
-pub const NORM_FLOOR: f64 = 1e-12;
 
 /// The arguments shared by the forward and the backward (row-major, contiguous).
 #[derive(Clone, Copy)]
@@ -204,49 +203,6 @@ struct Posed<T> {
     /// |frame·rest| (may be below the floor).
     length: T,
     quat: Quat<T>,
-}
-
-#[inline(always)]
-fn dot<T: Real>(a: &V3<T>, b: &V3<T>) -> T {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-/// |v|, without overflow: when the plain sum of squares overflows (|v| ≳ 1.8e19 in f32),
-/// scaled by the largest component. NaN for NaN, +inf for an infinite component.
-#[inline(always)]
-fn length<T: Real>(v: &V3<T>) -> T {
-    let sq = dot(v, v);
-    if sq.is_finite() || sq.is_nan() {
-        return sq.sqrt();
-    }
-    let peak = v[0].abs().max(v[1].abs()).max(v[2].abs());
-    if !peak.is_finite() {
-        return peak;
-    }
-    let s = v.map(|x| x / peak);
-    peak * dot(&s, &s).sqrt()
-}
-
-/// `(v / max(|v|, 1e-12), |v|)`: zero stays zero, NaN stays NaN.
-#[inline(always)]
-fn normalise<T: Real>(v: V3<T>) -> (V3<T>, T) {
-    let len = length(&v);
-    let floor = T::c(NORM_FLOOR);
-    // NaN-safe: a NaN length divides by NaN, as the reference does.
-    let div = if len < floor { floor } else { len };
-    (v.map(|x| x / div), len)
-}
-
-/// Adjoint of [`normalise`] at `v` with output `n` and length `len`: through the length
-/// where `len ≥ 1e-12` (where the clamp passes gradient), through `v / 1e-12` below.
-#[inline(always)]
-fn normalise_backward<T: Real>(n: &V3<T>, len: T, v_n: &V3<T>) -> V3<T> {
-    let floor = T::c(NORM_FLOOR);
-    if len < floor {
-        return v_n.map(|g| g / floor);
-    }
-    let along = dot(n, v_n);
-    [0, 1, 2].map(|c| (v_n[c] - n[c] * along) / len)
 }
 
 /// `normal_to_quat` of one normal (python/urhead/ops/splat.py), with its adjoint's state.

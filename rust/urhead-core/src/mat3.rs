@@ -47,15 +47,23 @@ pub fn transpose<T: Real>(a: &M3<T>) -> M3<T> {
     [0, 1, 2].map(|i| [a[0][i], a[1][i], a[2][i]])
 }
 
+// matvec, matvec_t and outer are written out: `[0, 1, 2].map(..)` is not always inlined
+// (measured: rotate_normalize 4× slower, the closure called once per element).
 #[inline(always)]
 pub fn matvec<T: Real>(a: &M3<T>, v: &V3<T>) -> V3<T> {
-    [0, 1, 2].map(|i| a[i][0] * v[0] + a[i][1] * v[1] + a[i][2] * v[2])
+    [dot(&a[0], v), dot(&a[1], v), dot(&a[2], v)]
+}
+
+#[inline(always)]
+pub fn dot<T: Real>(a: &V3<T>, b: &V3<T>) -> T {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
 /// aᵀ·v
 #[inline(always)]
 pub fn matvec_t<T: Real>(a: &M3<T>, v: &V3<T>) -> V3<T> {
-    [0, 1, 2].map(|i| a[0][i] * v[0] + a[1][i] * v[1] + a[2][i] * v[2])
+    let column = |i: usize| dot(&[a[0][i], a[1][i], a[2][i]], v);
+    [column(0), column(1), column(2)]
 }
 
 #[inline(always)]
@@ -71,7 +79,8 @@ pub fn scale<T: Real>(a: &M3<T>, s: T) -> M3<T> {
 /// Outer product a·bᵀ.
 #[inline(always)]
 pub fn outer<T: Real>(a: &V3<T>, b: &V3<T>) -> M3<T> {
-    [0, 1, 2].map(|i| [0, 1, 2].map(|j| a[i] * b[j]))
+    let row = |x: T| [x * b[0], x * b[1], x * b[2]];
+    [row(a[0]), row(a[1]), row(a[2])]
 }
 
 /// Frobenius inner product Σ a∘b.

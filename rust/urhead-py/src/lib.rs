@@ -28,6 +28,7 @@ mod memory;
 mod pool;
 mod raster;
 mod raytrace;
+mod rotate;
 mod shading;
 mod splat;
 mod ssim;
@@ -45,6 +46,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     raster::register(m)?;
     splat::register(m)?;
     raytrace::register(m)?;
+    rotate::register(m)?;
     shading::register(m)?;
     ssim::register(m)?;
     Ok(())
