@@ -314,13 +314,13 @@ class Avatar:
         t = self.tables()
         layout = self.layout
         raster = rasterize(displaced, t.faces, camera)
-        uv_image = interpolate(t.uv_coords, raster, t.uv_faces)
         h, w = camera.height, camera.width
         pixels = (raster.tri_id.reshape(-1) >= 0).nonzero()[:, 0]
-        uv = uv_image.reshape(-1, 2)[pixels]
-        rows = self.lookup(uv.contiguous(), gather)
-        rot_image = interpolate(rotations.reshape(-1, 9), raster, t.faces)
-        pixel_rot = rot_image.reshape(-1, 9)[pixels].reshape(-1, 3, 3)
+        # At the covered pixels only: no (H, W, C) images, nor their gradients, to index.
+        uv = interpolate(t.uv_coords, raster, t.uv_faces, pixels)
+        rows = self.lookup(uv, gather)
+        pixel_rot = interpolate(rotations.reshape(-1, 9), raster, t.faces, pixels)
+        pixel_rot = pixel_rot.reshape(-1, 3, 3)
         rays = self._rays(camera)[pixels]
         rotation = pixel_rot.detach()
         local = rotate_normalize(rotation, rays, transpose=True)

@@ -244,8 +244,8 @@ def rasterize_uv(uv_coords, uv_faces, height, width):
     return UvRasterOutput(tri_id, bary)
 
 
-def interpolate(attr, raster, faces):
-    """Reference of :func:`urhead.ops.interpolate`."""
+def interpolate(attr, raster, faces, pixels=None):
+    """Reference of :func:`urhead.ops.interpolate`: the whole image, indexed at ``pixels``."""
     tri = raster.tri_id.long()
     covered = (tri >= 0)[..., None]
     f = faces.long()[tri.clamp(min=0)]
@@ -256,7 +256,8 @@ def interpolate(attr, raster, faces):
         + b1[..., None] * attr[f[..., 1]]
         + b2[..., None] * attr[f[..., 2]]
     )
-    return torch.where(covered, out, torch.zeros_like(out))
+    image = torch.where(covered, out, torch.zeros_like(out))
+    return image if pixels is None else image.reshape(-1, attr.shape[-1])[pixels]
 
 
 def texture(tex, uv):

@@ -122,7 +122,7 @@ fn mix_backward(g: &[f32], mix: &[f32], tri_id: &[i32]) -> Vec<f32> {
 fn chain(s: &Scene, g_out: &[f32]) -> usize {
     let (h, w) = (SIDE as usize, SIDE as usize);
     let raster = rasterize_forward(&s.verts, &s.faces, &s.camera).unwrap();
-    let uv = interpolate_forward(&s.uvs, 2, &s.faces, &raster.tri_id, &raster.bary, h, w).unwrap();
+    let uv = interpolate_forward(&s.uvs, 2, &s.faces, &raster.tri_id, &raster.bary, h, w, None).unwrap();
     let sampled = texture_forward(&s.tex, TEX, TEX, CHANNELS, &uv).unwrap();
     let color = mix_forward(&sampled, &s.mix, &raster.tri_id);
     let aa = AntialiasInputs {
@@ -147,6 +147,7 @@ fn chain(s: &Scene, g_out: &[f32]) -> usize {
         &raster.bary,
         h,
         w,
+        None,
         g_tex.v_uv.as_ref().unwrap(),
         false,
         true,
@@ -178,13 +179,18 @@ fn bench_raster(c: &mut Criterion) {
     let g_bary = rng.vec::<f32>(h * w * 2, -1.0, 1.0);
     let g_uv_out = rng.vec::<f32>(h * w * 2, -1.0, 1.0);
     let g_rgb = rng.vec::<f32>(h * w * 3, -1.0, 1.0);
+    // The covered pixels in increasing order, as `Avatar.shade_mesh` lists them.
+    let covered_pixels: Vec<i64> = (0..(h * w) as i64)
+        .filter(|&p| raster.tri_id[p as usize] >= 0)
+        .collect();
     let mut g_sampled = rng.vec::<f32>(h * w * CHANNELS, -1.0, 1.0);
     for (g, &t) in g_sampled.chunks_exact_mut(CHANNELS).zip(&raster.tri_id) {
         if t < 0 {
             g.fill(0.0);
         }
     }
-    let uv = interpolate_forward(&s.uvs, 2, &s.faces, &raster.tri_id, &raster.bary, h, w).unwrap();
+    let g_uv_covered = rng.vec::<f32>(covered_pixels.len() * 2, -1.0, 1.0);
+    let uv = interpolate_forward(&s.uvs, 2, &s.faces, &raster.tri_id, &raster.bary, h, w, None).unwrap();
     let color = mix_forward(
         &texture_forward(&s.tex, TEX, TEX, CHANNELS, &uv).unwrap(),
         &s.mix,
@@ -211,7 +217,7 @@ fn bench_raster(c: &mut Criterion) {
         b.iter(|| rasterize_backward(&s.verts, &s.faces, &s.camera, &raster.tri_id, &g_bary).unwrap())
     });
     group.bench_function("interpolate_forward", |b| {
-        b.iter(|| interpolate_forward(&s.uvs, 2, &s.faces, &raster.tri_id, &raster.bary, h, w).unwrap())
+        b.iter(|| interpolate_forward(&s.uvs, 2, &s.faces, &raster.tri_id, &raster.bary, h, w, None).unwrap())
     });
     group.bench_function("interpolate_backward", |b| {
         b.iter(|| {
@@ -223,7 +229,32 @@ fn bench_raster(c: &mut Criterion) {
                 &raster.bary,
                 h,
                 w,
+                None,
                 &g_uv_out,
+                true,
+                true,
+            )
+            .unwrap()
+        })
+    });
+    let listed = Some(covered_pixels.as_slice());
+    group.bench_function("interpolate_forward_covered_pixels", |b| {
+        b.iter(|| {
+            interpolate_forward(&s.uvs, 2, &s.faces, &raster.tri_id, &raster.bary, h, w, listed).unwrap()
+        })
+    });
+    group.bench_function("interpolate_backward_covered_pixels", |b| {
+        b.iter(|| {
+            interpolate_backward(
+                &s.uvs,
+                2,
+                &s.faces,
+                &raster.tri_id,
+                &raster.bary,
+                h,
+                w,
+                listed,
+                &g_uv_covered,
                 true,
                 true,
             )

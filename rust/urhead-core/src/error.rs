@@ -76,13 +76,13 @@ pub fn check_finite<T: crate::Real>(arg: &'static str, data: &[T]) -> Result<()>
 }
 
 /// `Err(IndexOutOfRange)` naming the first index outside `[low, high)`.
-pub fn check_indices(arg: &'static str, data: &[i32], low: i64, high: i64) -> Result<()> {
-    match data.iter().position(|&i| (i as i64) < low || (i as i64) >= high) {
+pub fn check_indices<I: Copy + Into<i64>>(arg: &'static str, data: &[I], low: i64, high: i64) -> Result<()> {
+    match data.iter().position(|&i| i.into() < low || i.into() >= high) {
         None => Ok(()),
         Some(index) => Err(Error::IndexOutOfRange {
             arg,
             index,
-            value: data[index] as i64,
+            value: data[index].into(),
             low,
             high,
         }),

@@ -104,6 +104,7 @@ fn interpolate_gradients_match_central_differences() {
         &raster.bary,
         h,
         w,
+        None,
         &weights,
         true,
         true,
@@ -111,7 +112,7 @@ fn interpolate_gradients_match_central_differences() {
     .unwrap();
     let loss = |a: &[f64], b: &[f64]| {
         dot(
-            &interpolate_forward(a, c, &faces, &raster.tri_id, b, h, w).unwrap(),
+            &interpolate_forward(a, c, &faces, &raster.tri_id, b, h, w, None).unwrap(),
             &weights,
         )
     };
@@ -266,7 +267,7 @@ fn chain_bits() -> Vec<u64> {
     let uv_attr: Vec<f32> = rng.vec(verts.len() / 3 * 2, 0.0, 1.0);
     let tex: Vec<f32> = rng.vec(32 * 24 * c, 0.0, 1.0);
     let raster = rasterize_forward(&verts, &faces, &cam).unwrap();
-    let uv = interpolate_forward(&uv_attr, 2, &faces, &raster.tri_id, &raster.bary, h, w).unwrap();
+    let uv = interpolate_forward(&uv_attr, 2, &faces, &raster.tri_id, &raster.bary, h, w, None).unwrap();
     let color = texture_forward(&tex, 32, 24, c, &uv).unwrap();
     let topology = edge_topology(&faces, verts.len() / 3).unwrap();
     let aa = AntialiasInputs {
@@ -291,6 +292,7 @@ fn chain_bits() -> Vec<u64> {
         &raster.bary,
         h,
         w,
+        None,
         g_tex.v_uv.as_ref().unwrap(),
         true,
         true,

@@ -99,22 +99,32 @@ fn interpolate_forward_typed<'py, T: Element + Real>(
     faces: Arr<'py, i32>,
     tri_id: Arr<'py, i32>,
     bary: Arr<'py, T>,
+    pixels: Option<Arr<'py, i64>>,
     num_threads: usize,
 ) -> PyResult<Bound<'py, numpy::PyArrayDyn<T>>> {
     let c = shape(&attr, "attr", 2, "(V, C)")?[1];
     shape_last(&faces, "faces", 2, 3, "(F, 3) int32")?;
     let (h, w) = image_dims(&tri_id, "tri_id", 2, "(H, W)")?;
     shape_last(&bary, "bary", 3, 2, "(H, W, 2)")?;
+    let out_dims = match &pixels {
+        Some(p) => vec![shape(p, "pixels", 1, "(P,) int64")?[0], c],
+        None => vec![h, w, c],
+    };
     let (a, f, t, b) = (
         data(&attr, "attr")?,
         data(&faces, "faces")?,
         data(&tri_id, "tri_id")?,
         data(&bary, "bary")?,
     );
+    let p = pixels.as_ref().map(|p| data(p, "pixels")).transpose()?;
     let out = py
-        .allow_threads(|| with_threads(num_threads, || raster::interpolate_forward(a, c, f, t, b, h, w)))
+        .allow_threads(|| {
+            with_threads(num_threads, || {
+                raster::interpolate_forward(a, c, f, t, b, h, w, p)
+            })
+        })
         .map_err(py_err)?;
-    array(py, out, &[h, w, c])
+    array(py, out, &out_dims)
 }
 
 #[allow(clippy::type_complexity)]
@@ -124,6 +134,7 @@ fn interpolate_backward_typed<'py, T: Element + Real>(
     faces: Arr<'py, i32>,
     tri_id: Arr<'py, i32>,
     bary: Arr<'py, T>,
+    pixels: Option<Arr<'py, i64>>,
     v_out: Arr<'py, T>,
     needs: (bool, bool),
     num_threads: usize,
@@ -132,7 +143,13 @@ fn interpolate_backward_typed<'py, T: Element + Real>(
     shape_last(&faces, "faces", 2, 3, "(F, 3) int32")?;
     let (h, w) = image_dims(&tri_id, "tri_id", 2, "(H, W)")?;
     shape_last(&bary, "bary", 3, 2, "(H, W, 2)")?;
-    shape(&v_out, "v_out", 3, "(H, W, C)")?;
+    match &pixels {
+        Some(p) => {
+            shape(p, "pixels", 1, "(P,) int64")?;
+            shape(&v_out, "v_out", 2, "(P, C)")?
+        }
+        None => shape(&v_out, "v_out", 3, "(H, W, C)")?,
+    };
     let (a, f, t, b, g) = (
         data(&attr, "attr")?,
         data(&faces, "faces")?,
@@ -140,10 +157,11 @@ fn interpolate_backward_typed<'py, T: Element + Real>(
         data(&bary, "bary")?,
         data(&v_out, "v_out")?,
     );
+    let p = pixels.as_ref().map(|p| data(p, "pixels")).transpose()?;
     let out = py
         .allow_threads(|| {
             with_threads(num_threads, || {
-                raster::interpolate_backward(a, s[1], f, t, b, h, w, g, needs.0, needs.1)
+                raster::interpolate_backward(a, s[1], f, t, b, h, w, p, g, needs.0, needs.1)
             })
         })
         .map_err(py_err)?;
@@ -356,7 +374,7 @@ pub fn rasterize_backward<'py>(
     .map(Bound::into_any))
 }
 
-/// interpolate → (H, W, C).
+/// interpolate → (H, W, C), or (P, C) at `pixels` (P,) int64 when not None.
 #[pyfunction]
 pub fn interpolate_forward<'py>(
     py: Python<'py>,
@@ -364,6 +382,7 @@ pub fn interpolate_forward<'py>(
     faces: Arr<'py, i32>,
     tri_id: Arr<'py, i32>,
     bary: &Bound<'py, PyAny>,
+    pixels: Option<Arr<'py, i64>>,
     num_threads: usize,
 ) -> PyResult<Bound<'py, PyAny>> {
     with_float_type!(attr, T => interpolate_forward_typed::<T>(
@@ -372,12 +391,14 @@ pub fn interpolate_forward<'py>(
         faces,
         tri_id,
         bary.extract()?,
+        pixels,
         num_threads,
     )
     .map(Bound::into_any))
 }
 
-/// interpolate backward → (v_attr, v_bary), None where not requested.
+/// interpolate backward → (v_attr, v_bary (H, W, 2)), None where not requested; `v_out` is
+/// (P, C) when `pixels` is not None.
 #[pyfunction]
 pub fn interpolate_backward<'py>(
     py: Python<'py>,
@@ -385,6 +406,7 @@ pub fn interpolate_backward<'py>(
     faces: Arr<'py, i32>,
     tri_id: Arr<'py, i32>,
     bary: &Bound<'py, PyAny>,
+    pixels: Option<Arr<'py, i64>>,
     v_out: &Bound<'py, PyAny>,
     needs: (bool, bool),
     num_threads: usize,
@@ -395,6 +417,7 @@ pub fn interpolate_backward<'py>(
         faces,
         tri_id,
         bary.extract()?,
+        pixels,
         v_out.extract()?,
         needs,
         num_threads,

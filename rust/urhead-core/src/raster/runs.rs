@@ -25,9 +25,18 @@ impl<T: Real> TriangleRuns<T> {
     #[inline(always)]
     pub fn slot(&mut self, tri: u32) -> &mut [T] {
         if self.tris.last() != Some(&tri) {
-            self.tris.push(tri);
-            self.sums.resize(self.sums.len() + self.width, T::zero());
+            return self.new_slot(tri);
         }
+        let n = self.sums.len();
+        &mut self.sums[n - self.width..]
+    }
+
+    /// A new zeroed accumulator of `tri`, ending the current run even if it is the same
+    /// triangle.
+    #[inline(always)]
+    pub fn new_slot(&mut self, tri: u32) -> &mut [T] {
+        self.tris.push(tri);
+        self.sums.resize(self.sums.len() + self.width, T::zero());
         let n = self.sums.len();
         &mut self.sums[n - self.width..]
     }
