@@ -58,7 +58,7 @@ def world_gaussians(avatar: Avatar, params: FlameParams, camera: Camera) -> dict
     with torch.no_grad():
         verts, rotations = avatar.skin(params)
         lift = avatar.lift_gaussians(verts, rotations, camera)
-        rows = texture(avatar.maps.detach(), avatar.gaussian_uv)
+        rows = avatar.lookup_fixed(avatar.gaussian_uv)  # the rows the lift used
         samples = avatar.layout.split(rows)
     return {
         "means": lift.means,
