@@ -514,7 +514,7 @@ impl CornerLists {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::testing::Rng;
+    use crate::testing::{on_threads, Rng};
 
     /// Owned inputs: `n` Gaussians on a random mesh of `v` vertices.
     struct Case<T> {
@@ -736,11 +736,7 @@ mod tests {
             rng.vec(n * 4, -1.0, 1.0),
         );
         let run = |threads: usize| {
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap();
-            pool.install(|| {
+            on_threads(threads, || {
                 let out = lift_forward(&case.inputs()).unwrap();
                 let grads = LiftGradOutputs {
                     v_means: Some(&w.0),

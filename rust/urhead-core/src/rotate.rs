@@ -209,7 +209,7 @@ fn optional_chunks<T>(buf: &mut [T], size: usize, tasks: usize) -> Vec<Option<&m
 mod tests {
     use super::*;
     use crate::error::Error;
-    use crate::testing::Rng;
+    use crate::testing::{on_threads, Rng};
 
     struct Case<T> {
         rotations: Vec<T>,
@@ -401,11 +401,7 @@ mod tests {
         let case = Case::<f32>::new(n, 6);
         let w: Vec<f32> = Rng::new(7).vec(n * 3, -1.0, 1.0);
         let run = |threads: usize, transpose: bool| {
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap();
-            pool.install(|| {
+            on_threads(threads, || {
                 let inputs = case.inputs(transpose);
                 let out = rotate_normalize_forward(&inputs).unwrap();
                 let g = rotate_normalize_backward(&inputs, &w, &BOTH).unwrap();

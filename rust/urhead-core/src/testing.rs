@@ -167,3 +167,13 @@ fn json_number(x: f64) -> String {
         format!("{x:e}")
     }
 }
+
+/// Runs `f` on a fresh rayon pool of `threads` threads: the thread-count checks (results
+/// must be the same bits for any count) run each pass under several pools.
+pub fn on_threads<R: Send>(threads: usize, f: impl FnOnce() -> R + Send) -> R {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .expect("a rayon pool for the test")
+        .install(f)
+}

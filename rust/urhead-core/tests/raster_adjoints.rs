@@ -6,7 +6,7 @@ use urhead_core::raster::{
     antialias_backward, antialias_forward, edge_topology, interpolate_backward, interpolate_forward,
     rasterize_backward, rasterize_forward, rasterize_uv, texture_backward, texture_forward, AntialiasInputs,
 };
-use urhead_core::testing::{record_stability, Rng};
+use urhead_core::testing::{on_threads, record_stability, Rng};
 use urhead_core::Camera;
 
 const W: u32 = 48;
@@ -331,13 +331,7 @@ fn chain_bits() -> Vec<u64> {
 
 #[test]
 fn whole_chain_is_bitwise_identical_for_any_thread_count() {
-    let run = |threads: usize| {
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap()
-            .install(chain_bits)
-    };
+    let run = |threads: usize| on_threads(threads, chain_bits);
     let reference = run(1);
     for threads in [2, 3, 4] {
         let bits = run(threads);

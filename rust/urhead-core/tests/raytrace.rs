@@ -2,6 +2,7 @@
 //! scenes whose answer is known in closed form.
 
 use urhead_core::raytrace::{render, Light, RenderOutput, RenderSettings, Scene, SceneInputs, TriangleBvh};
+use urhead_core::testing::on_threads;
 use urhead_core::{Camera, Error};
 
 const LIGHT: Light = Light {
@@ -87,11 +88,7 @@ fn settings(samples_per_side: u32) -> RenderSettings {
 }
 
 fn render_on(threads: usize, m: &Mesh, s: RenderSettings) -> RenderOutput {
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()
-        .unwrap();
-    pool.install(|| {
+    on_threads(threads, || {
         let scene = Scene::new(inputs(m)).unwrap();
         render(&scene, &camera(37, 29), s).unwrap()
     })

@@ -7,7 +7,7 @@ use urhead_core::splat::{
     project_backward, project_forward, rasterize_backward_with, rasterize_forward_with, ProjectGradOutputs,
     ProjectNeeds, RasterInputs, SplatReal, SyntheticSplat,
 };
-use urhead_core::testing::{record_stability, Rng};
+use urhead_core::testing::{on_threads, record_stability, Rng};
 use urhead_core::Real;
 
 const SIZE: u32 = 48;
@@ -191,11 +191,9 @@ fn case27_same_bits_for_any_thread_count() {
     let w_img = rng.vec::<f32>(px * 3, -1.0, 1.0);
     let w_t = rng.vec::<f32>(px, -1.0, 1.0);
     let run = |threads: usize| {
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap()
-            .install(|| render::<<f32 as SplatReal>::Fast>(&s, None, &w_img, &w_t))
+        on_threads(threads, || {
+            render::<<f32 as SplatReal>::Fast>(&s, None, &w_img, &w_t)
+        })
     };
     let reference = run(1);
     for threads in [1, 2, 4, 2, 1, 4] {

@@ -5,7 +5,7 @@ use urhead_core::error::Error;
 use urhead_core::ssim::{
     masked_l1, masked_l1_with_grad, masked_ssim, masked_ssim_with_grad, SsimInputs, C1, C2, SIGMA, WINDOW,
 };
-use urhead_core::testing::Rng;
+use urhead_core::testing::{on_threads, Rng};
 
 /// Masked mean SSIM from the definition: a full 2-D window per pixel and channel.
 fn direct_ssim(x: &[f64], y: &[f64], mask: Option<&[f64]>, h: usize, w: usize, c: usize) -> f64 {
@@ -206,13 +206,7 @@ fn thread_count_does_not_change_bits() {
         width: w,
         channels: c,
     };
-    let run = |threads: usize| {
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap();
-        pool.install(|| masked_ssim_with_grad(&inputs).unwrap())
-    };
+    let run = |threads: usize| on_threads(threads, || masked_ssim_with_grad(&inputs).unwrap());
     let (v1, g1) = run(1);
     for threads in [2, 4] {
         let (v, g) = run(threads);

@@ -623,7 +623,7 @@ mod tests {
     /// 1, 2 and 5 threads.
     #[test]
     fn a_journal_over_many_chunks_restores_bit_for_bit_on_any_thread_count() {
-        use crate::testing::Rng;
+        use crate::testing::{on_threads, Rng};
         let (n, c) = (5000, 7);
         let mut rng = Rng::new(3);
         let step_rows: Vec<Vec<i64>> = (0..3)
@@ -645,10 +645,6 @@ mod tests {
             let (mut p, mut m, mut v, mut s) = state(n, c);
             let before = (p.clone(), m.clone(), v.clone(), s.clone());
             let mut journal = RowJournal::new(n, c);
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap();
             let mut st = SparseAdamState {
                 param: &mut p,
                 exp_avg: &mut m,
@@ -656,16 +652,18 @@ mod tests {
                 steps: &mut s,
                 channels: c,
             };
-            let mut saved = Vec::new();
-            for (rows, grads) in step_rows.iter().zip(&step_grads) {
-                let report = pool
-                    .install(|| {
-                        sparse_adam_step(&mut st, rows, grads, &[0.1; 7], &CONFIG, Some(&mut journal))
+            let saved: Vec<usize> = on_threads(threads, || {
+                let steps = step_rows.iter().zip(&step_grads);
+                steps
+                    .map(|(rows, grads)| {
+                        let report =
+                            sparse_adam_step(&mut st, rows, grads, &[0.1; 7], &CONFIG, Some(&mut journal))
+                                .unwrap();
+                        assert_eq!(report.rejected_rows, 1);
+                        report.saved_rows
                     })
-                    .unwrap();
-                assert_eq!(report.rejected_rows, 1);
-                saved.push(report.saved_rows);
-            }
+                    .collect()
+            });
             let after = (
                 st.param.to_vec(),
                 st.exp_avg.to_vec(),

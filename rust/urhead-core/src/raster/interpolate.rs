@@ -400,7 +400,7 @@ pub fn interpolate_backward<T: Real>(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::testing::Rng;
+    use crate::testing::{on_threads, Rng};
 
     const H: usize = 37;
     const W: usize = 29;
@@ -546,11 +546,7 @@ mod tests {
         let v_out: Vec<f32> = Rng::new(10).vec(shuffled.len() * C, -1.0, 1.0);
         for pixels in [shuffled, increasing] {
             let run = |threads: usize| {
-                let pool = rayon::ThreadPoolBuilder::new()
-                    .num_threads(threads)
-                    .build()
-                    .unwrap();
-                pool.install(|| {
+                on_threads(threads, || {
                     let g = backward(&s, Some(&pixels), &v_out).unwrap();
                     (forward(&s, Some(&pixels)).unwrap(), g.v_attr, g.v_bary)
                 })
