@@ -18,6 +18,16 @@ pub fn batch_chunks_mut<T>(buf: &mut [T], batch: usize, row: usize, chunk_rows: 
     views
 }
 
+/// `buf` in chunks of `size` for a parallel pass that writes an optional output, or
+/// `tasks` Nones when there is no output: zipped with the pass's other chunks, the output
+/// is written where asked for and skipped elsewhere, in the same single pass.
+pub fn optional_chunks<T>(buf: Option<&mut [T]>, size: usize, tasks: usize) -> Vec<Option<&mut [T]>> {
+    match buf {
+        Some(buf) => buf.chunks_mut(size).map(Some).collect(),
+        None => (0..tasks).map(|_| None).collect(),
+    }
+}
+
 /// Sums equally long partial vectors in their given order (deterministic reduction).
 pub fn sum_in_order<T: crate::Real>(partials: &[Vec<T>], len: usize) -> Vec<T> {
     let mut total = vec![T::zero(); len];

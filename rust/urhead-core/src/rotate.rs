@@ -16,6 +16,7 @@ use rayon::prelude::*;
 use crate::error::{check_len, Result};
 use crate::mat3::{dot, matvec, matvec_t, outer, M3, V3};
 use crate::memory::zeroed;
+use crate::parallel::optional_chunks;
 use crate::Real;
 
 /// Rows per rayon task; fixed, so the partition does not depend on the thread count (each
@@ -158,9 +159,19 @@ pub fn rotate_normalize_backward<T: Real>(
     let mut v_rotations = zeroed("rotate_normalize rotation gradient", size(needs.rotations, 9))?;
     let mut v_vectors = zeroed("rotate_normalize vector gradient", size(needs.vectors, 3))?;
     let tasks = n.div_ceil(CHUNK);
-    optional_chunks(&mut v_rotations, CHUNK * 9, tasks)
+    let rotation_chunks = optional_chunks(
+        needs.rotations.then_some(v_rotations.as_mut_slice()),
+        CHUNK * 9,
+        tasks,
+    );
+    let vector_chunks = optional_chunks(
+        needs.vectors.then_some(v_vectors.as_mut_slice()),
+        CHUNK * 3,
+        tasks,
+    );
+    rotation_chunks
         .into_par_iter()
-        .zip(optional_chunks(&mut v_vectors, CHUNK * 3, tasks))
+        .zip(vector_chunks)
         .enumerate()
         .for_each(|(c, (mut dr, mut dv))| {
             let rows = (n - c * CHUNK).min(CHUNK);
@@ -194,15 +205,6 @@ pub fn rotate_normalize_backward<T: Real>(
         v_rotations: needs.rotations.then_some(v_rotations),
         v_vectors: needs.vectors.then_some(v_vectors),
     })
-}
-
-/// `buf` in `tasks` chunks of `size`, or `tasks` Nones for an empty (not requested) `buf`:
-/// the two gradients are then written in one pass, either of them skipped.
-fn optional_chunks<T>(buf: &mut [T], size: usize, tasks: usize) -> Vec<Option<&mut [T]>> {
-    if buf.is_empty() {
-        return (0..tasks).map(|_| None).collect();
-    }
-    buf.chunks_mut(size).map(Some).collect()
 }
 
 #[cfg(test)]

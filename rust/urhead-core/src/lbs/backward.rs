@@ -9,7 +9,7 @@ use super::{LbsInputs, LbsModel, VERT_CHUNK};
 use crate::error::{check_len, Result};
 use crate::mat3::{add, frobenius, matmul_nt, matmul_tn, matvec_t, outer, zero3, M3, V3};
 use crate::memory::zeroed;
-use crate::parallel::{axpy, batch_chunks_mut, dot, sum_in_order};
+use crate::parallel::{axpy, batch_chunks_mut, dot, optional_chunks, sum_in_order};
 use crate::Real;
 
 /// Gradients of the loss with respect to the forward outputs; `None` means zero.
@@ -278,16 +278,17 @@ fn shape_backward<T: Real>(
     let (b, nv, nb, nj) = (inputs.batch, model.num_verts, model.num_betas, model.num_joints);
     let mut v_template = vec![T::zero(); if needs.v_template { nv * 3 } else { 0 }];
     let mut v_shapedirs = vec![T::zero(); if needs.shapedirs { nv * 3 * nb } else { 0 }];
-    let template_chunks: Vec<Option<&mut [T]>> = if needs.v_template {
-        v_template.chunks_mut(VERT_CHUNK * 3).map(Some).collect()
-    } else {
-        (0..nv.div_ceil(VERT_CHUNK)).map(|_| None).collect()
-    };
-    let shapedirs_chunks: Vec<Option<&mut [T]>> = if needs.shapedirs {
-        v_shapedirs.chunks_mut(VERT_CHUNK * 3 * nb).map(Some).collect()
-    } else {
-        (0..nv.div_ceil(VERT_CHUNK)).map(|_| None).collect()
-    };
+    let tasks = nv.div_ceil(VERT_CHUNK);
+    let template_chunks = optional_chunks(
+        needs.v_template.then_some(v_template.as_mut_slice()),
+        VERT_CHUNK * 3,
+        tasks,
+    );
+    let shapedirs_chunks = optional_chunks(
+        needs.shapedirs.then_some(v_shapedirs.as_mut_slice()),
+        VERT_CHUNK * 3 * nb,
+        tasks,
+    );
     let partial_betas: Vec<Vec<T>> = template_chunks
         .into_par_iter()
         .zip(shapedirs_chunks)

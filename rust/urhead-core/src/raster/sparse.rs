@@ -17,6 +17,7 @@ use rayon::prelude::*;
 use super::taps::{gradient_taps, uv_gradient, uv_gradient_ahead, TexShape, PREFETCH_DISTANCE, SAMPLE_CHUNK};
 use crate::error::Result;
 use crate::memory::{prefetch, zeroed};
+use crate::parallel::optional_chunks;
 use crate::Real;
 
 /// Target number of texel buckets (fewer for small textures).
@@ -146,10 +147,7 @@ pub(crate) fn texel_entries<T: Real>(
     let n = uv.len() / 2;
     let buckets = Buckets::new(shape);
     let num_chunks = n.div_ceil(SAMPLE_CHUNK);
-    let mut v_uv_chunks: Vec<Option<&mut [T]>> = match v_uv {
-        Some(v) => v.chunks_mut(2 * SAMPLE_CHUNK).map(Some).collect(),
-        None => (0..num_chunks).map(|_| None).collect(),
-    };
+    let mut v_uv_chunks = optional_chunks(v_uv, 2 * SAMPLE_CHUNK, num_chunks);
 
     // 1. Entries per sample chunk, partitioned by bucket (stable counting sort).
     let chunks: Vec<(Vec<Entry<T>>, Vec<usize>)> = v_uv_chunks

@@ -7,6 +7,7 @@ use rayon::prelude::*;
 use super::{ProjectGradOutputs, ProjectGrads, ProjectInputs, ProjectNeeds, Projected, GAUSSIAN_CHUNK};
 use super::{ALPHA_MIN, DILATION, EXTENT_CAP};
 use crate::mat3::{matmul, matmul_nt, matmul_tn, transpose, M3, V3};
+use crate::parallel::optional_chunks;
 use crate::sh::{sh_to_rgb, sh_to_rgb_backward};
 use crate::{Camera, Real};
 
@@ -275,10 +276,11 @@ pub fn project_forward<T: Real>(camera: &Camera, inputs: &ProjectInputs<T>) -> c
     let mut depths = vec![T::zero(); n];
     let mut radii = vec![0i32; n * 2];
     let mut colors = inputs.sh.map(|_| vec![T::zero(); n * 3]);
-    let mut color_chunks: Vec<Option<&mut [T]>> = match colors.as_mut() {
-        Some(c) => c.chunks_mut(GAUSSIAN_CHUNK * 3).map(Some).collect(),
-        None => (0..n.div_ceil(GAUSSIAN_CHUNK)).map(|_| None).collect(),
-    };
+    let mut color_chunks = optional_chunks(
+        colors.as_deref_mut(),
+        GAUSSIAN_CHUNK * 3,
+        n.div_ceil(GAUSSIAN_CHUNK),
+    );
     means2d
         .par_chunks_mut(GAUSSIAN_CHUNK * 2)
         .zip(conics.par_chunks_mut(GAUSSIAN_CHUNK * 3))
