@@ -190,7 +190,9 @@ def test_gradcheck_with_pixels(scene):
 
 
 @pytest.mark.parametrize("increasing", [False, True])
-def test_pixels_are_bitwise_identical_across_thread_counts(scene, monkeypatch, increasing):
+def test_pixels_are_bitwise_identical_across_thread_counts(
+    scene, monkeypatch, increasing, stability
+):
     verts, faces, _, _, cam = scene
     pixels = random_pixels(cam, 3000, seed=5)
     if increasing:
@@ -210,6 +212,7 @@ def test_pixels_are_bitwise_identical_across_thread_counts(scene, monkeypatch, i
         monkeypatch.setenv("URHEAD_NUM_THREADS", threads)
         for a, b in zip(run(), reference, strict=True):
             assert torch.equal(a, b)
+    stability.checked(27, "interpolate at listed pixels: 1, 2, 3 threads, values and gradients", 3)
 
 
 def test_an_empty_pixel_list(scene):
@@ -223,7 +226,7 @@ def test_an_empty_pixel_list(scene):
     assert not g_attr.any() and not g_bary.any() and g_bary.shape == bary.shape
 
 
-def test_bad_pixels_are_refused_naming_them(scene):
+def test_bad_pixels_are_refused_naming_them(scene, stability):
     verts, faces, _, _, cam = scene
     raster = ops.rasterize(verts, faces, cam)
     attr = torch.zeros(verts.shape[0], 2, dtype=torch.float64)
@@ -240,3 +243,4 @@ def test_bad_pixels_are_refused_naming_them(scene):
         ops.interpolate(attr, raster, faces, torch.tensor([[0, 1]]))
     with pytest.raises(InvalidArgumentError, match="pixels"):
         ops.interpolate(attr, raster, faces, torch.arange(6)[::2])
+    stability.checked(26, "interpolate: pixels out of range, of another dtype or shape named", 7)

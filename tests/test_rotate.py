@@ -55,7 +55,7 @@ def _rel(a: torch.Tensor, b: torch.Tensor) -> float:
 
 
 @pytest.mark.parametrize("transpose", [False, True])
-def test_matches_reference_float64_values_and_gradients(transpose):
+def test_matches_reference_float64_values_and_gradients(transpose, stability):
     rotations, vectors = _special_case()
     weights = torch.randn(vectors.shape, generator=torch.Generator().manual_seed(2), dtype=F64)
     ours = _run(rotate_normalize, rotations, vectors, transpose, weights)
@@ -65,6 +65,7 @@ def test_matches_reference_float64_values_and_gradients(transpose):
     for a, b in zip(ours[1:], ref[1:], strict=True):
         assert torch.isfinite(a).all()
         assert _rel(a, b) < 1e-13
+    stability.checked(19, "rotate_normalize vs float64 reference, magnitudes 1 … 1e30, zero", 60)
 
 
 def test_float32_agrees_with_float64_reference():
@@ -86,7 +87,7 @@ def test_gradcheck_float64(transpose):
     assert torch.autograd.gradcheck(lambda r, v: rotate_normalize(r, v, transpose), inputs)
 
 
-def test_zero_and_non_finite_vectors_behave_as_the_torch_expression():
+def test_zero_and_non_finite_vectors_behave_as_the_torch_expression(stability):
     rotations, vectors = _case(8, seed=5)
     rotations[3:] = torch.eye(3, dtype=F64)
     vectors[:5] = torch.tensor(
@@ -118,6 +119,7 @@ def test_zero_and_non_finite_vectors_behave_as_the_torch_expression():
         assert ref[0][3].eq(0).all()
         assert torch.isfinite(r_grad[[0, 3, 4, 7]]).all()
         assert torch.isfinite(v_grad[[0, 3, 4, 7]]).all()
+    stability.checked(19, "rotate_normalize: zero, NaN, inf, 1e300 vectors as documented", 8)
 
 
 def test_only_the_requested_gradients():
@@ -132,7 +134,7 @@ def test_only_the_requested_gradients():
     assert not rotate_normalize(rotations, vectors, transpose=True).requires_grad
 
 
-def test_same_bits_for_any_thread_count(monkeypatch):
+def test_same_bits_for_any_thread_count(monkeypatch, stability):
     rotations, vectors = _case(20_000, seed=9, dtype=torch.float32)
     weights = torch.randn(20_000, 3, generator=torch.Generator().manual_seed(10))
     for transpose in (False, True):
@@ -142,9 +144,10 @@ def test_same_bits_for_any_thread_count(monkeypatch):
             results.append(_run(rotate_normalize, rotations, vectors, transpose, weights))
         for run in results[1:]:
             assert all(torch.equal(a, b) for a, b in zip(run, results[0], strict=True))
+    stability.checked(27, "rotate_normalize: 1, 2, 3 threads, outputs and gradients", 6)
 
 
-def test_bad_input_is_a_named_error():
+def test_bad_input_is_a_named_error(stability):
     rotations, vectors = _case(6, dtype=torch.float32)
     rotate_normalize(rotations, vectors)
     bad = [
@@ -173,6 +176,7 @@ def test_bad_input_is_a_named_error():
     empty_r = torch.zeros(0, 3, 3, requires_grad=True)
     rotate_normalize(empty_r, torch.zeros(0, 3)).sum().backward()
     assert empty_r.grad.shape == (0, 3, 3)
+    stability.checked(26, "rotate_normalize: wrong shapes and dtypes named, empty input", len(bad))
 
 
 # The avatar ------------------------------------------------------------------------------
