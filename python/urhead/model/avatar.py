@@ -21,7 +21,7 @@ import torch
 
 from urhead.camera import Camera
 from urhead.head.model import HeadModel, LbsTables
-from urhead.model.map_layout import MapLayout
+from urhead.model.map_layout import SHADING_FEATURES, MapLayout
 from urhead.ops import (
     antialias,
     antialias_topology,
@@ -32,6 +32,7 @@ from urhead.ops import (
     rasterize_gaussians,
     rotate_normalize,
     sh_shade,
+    sh_texture,
     texture,
 )
 from urhead.ops.texture import TextureGather
@@ -318,22 +319,28 @@ class Avatar:
         pixels = (raster.tri_id.reshape(-1) >= 0).nonzero()[:, 0]
         # At the covered pixels only: no (H, W, C) images, nor their gradients, to index.
         uv = interpolate(t.uv_coords, raster, t.uv_faces, pixels)
-        rows = self.lookup(uv, gather)
         pixel_rot = interpolate(rotations.reshape(-1, 9), raster, t.faces, pixels)
         pixel_rot = pixel_rot.reshape(-1, 3, 3)
         rays = self._rays(camera)[pixels]
         rotation = pixel_rot.detach()
         local = rotate_normalize(rotation, rays, transpose=True)
-        rgb = self._sh_color(rows, local, rotation, sh_degree)
+        # The colour and the few other maps the pixels need, in one pass over their texels
+        # whose backward does not read the maps again.
+        extra = self._pixel_maps(want_normals)
+        pixel_maps = sh_texture(
+            self.maps, uv, local, self._sh_degree(sh_degree), extra, gather=gather
+        )
+        rgb = pixel_maps[:, :3]
+        if layout.shading:
+            first = 3 + layout.shading_maps.start - extra.start
+            rgb = _shading_gain(rgb, pixel_maps[:, first : first + SHADING_FEATURES], rotation)
         background = torch.cat([self.background, self.background.new_zeros(1)])
         flat = background.expand(h * w, 4).clone()
         flat = flat.index_put((pixels,), torch.cat([rgb, rgb.new_ones(rgb.shape[0], 1)], 1))
         shaded = antialias(flat.reshape(h, w, 4), raster, displaced, t.faces, camera, t.topology)
         normals = None
         if want_normals:
-            # A slice, not layout.split: the split's backward concatenates a gradient for
-            # every map (zeros but N) over all P rows, ~12 ms a 512² step.
-            world = rotate_normalize(pixel_rot, rows[:, layout.normal])
+            world = rotate_normalize(pixel_rot, pixel_maps[:, 3:6])
             normals = world @ camera.viewmat[:3, :3].T
         return MeshRender(
             shaded[..., :3],
@@ -411,13 +418,30 @@ class Avatar:
         moves, and with a fixed camera it can absorb shading that changes with the head's
         rotation. With shading maps A the colour is scaled by 1 + Σ A_ij (R − I)_ij: light
         fixed in the room, to first order in the rotation."""
-        top = self.layout.sh_degree
-        rgb = sh_shade(rows, local, top if sh_degree is None else min(sh_degree, top))
+        rgb = sh_shade(rows, local, self._sh_degree(sh_degree))
         if not self.layout.shading:
             return rgb
-        features = (rotation - torch.eye(3, dtype=rotation.dtype)).reshape(-1, 9)
-        gain = 1 + (rows[:, self.layout.shading_maps] * features).sum(-1)
-        return rgb * gain[:, None]
+        return _shading_gain(rgb, rows[:, self.layout.shading_maps], rotation)
+
+    def _sh_degree(self, sh_degree: int | None) -> int:
+        """The SH degree used: the layout's, or ``sh_degree`` while it is lower."""
+        top = self.layout.sh_degree
+        return top if sh_degree is None else min(sh_degree, top)
+
+    def _pixel_maps(self, want_normals: bool) -> slice | None:
+        """The channels the mesh's pixels read besides the colour, as one range: the
+        normal map for normals, up to the shading maps A when the layout has them."""
+        layout = self.layout
+        if layout.shading:
+            return slice(layout.normal.start, layout.shading_maps.stop)
+        return layout.normal if want_normals else None
+
+
+def _shading_gain(rgb: torch.Tensor, shading: torch.Tensor, rotation: torch.Tensor):
+    """``rgb (P, 3)`` scaled by 1 + Σ A_ij (R − I)_ij, with the shading maps' samples
+    ``shading (P, 9)`` and the skinning rotations ``rotation (P, 3, 3)``."""
+    features = (rotation - torch.eye(3, dtype=rotation.dtype)).reshape(-1, 9)
+    return rgb * (1 + (shading * features).sum(-1))[:, None]
 
 
 @dataclass(frozen=True, eq=False)

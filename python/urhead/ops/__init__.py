@@ -8,6 +8,7 @@ from urhead.ops.lbs import LbsOutput, lbs
 from urhead.ops.lift import LiftOutput, lift_gaussians_geometry
 from urhead.ops.rasterize import RasterOutput, UvRasterOutput, rasterize, rasterize_uv
 from urhead.ops.rotate import rotate_normalize
+from urhead.ops.sh_texture import sh_texture
 from urhead.ops.shading import sh_shade
 from urhead.ops.splat import SplatOutput, normal_to_quat, rasterize_gaussians
 from urhead.ops.ssim import masked_l1, masked_ssim
@@ -33,5 +34,6 @@ __all__ = [
     "rasterize_uv",
     "rotate_normalize",
     "sh_shade",
+    "sh_texture",
     "texture",
 ]

@@ -650,6 +650,16 @@ def sh_shade(coeffs, dirs, degree):
     return ((basis[:, :, None] * sh).sum(1) + 0.5).clamp_min(0.0)
 
 
+def sh_texture(tex, uv, dirs, degree, extra=None):
+    """Reference of :func:`urhead.ops.sh_texture`: the lookup, then SH colour and the
+    ``extra`` slice of the rows."""
+    rows = texture(tex, uv)
+    parts = [sh_shade(rows, dirs.detach(), degree)]
+    if extra is not None:
+        parts.append(rows[:, extra])
+    return torch.cat(parts, 1)
+
+
 def normalize_clamped(v: torch.Tensor) -> torch.Tensor:
     """(..., 3) vectors over ``max(|v|, 1e-12)``: zero stays zero."""
     return v / v.norm(dim=-1, keepdim=True).clamp_min(1e-12)

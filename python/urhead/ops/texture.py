@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from urhead._threads import num_threads
@@ -55,13 +56,7 @@ class _Texture(torch.autograd.Function):
         )
         v_tex = None
         if indices is not None:
-            v_tex = torch.sparse_coo_tensor(
-                torch.from_numpy(indices),
-                torch.from_numpy(values),
-                tex.shape,
-                is_coalesced=True,
-                check_invariants=False,
-            )
+            v_tex = _sparse_gradient(indices, values, tex.shape)
             if not ctx.sparse_grad:
                 v_tex = v_tex.to_dense()
         v_uv = from_numpy(v_uv)
@@ -202,17 +197,23 @@ class TextureGather:
             return None
         uv, v_out = recorded
         dtype = self.tex.dtype
-        indices, values, _ = native("texture_backward")(
-            self.tex.numpy(),
-            uv.numpy(),
-            grad_to_numpy("v_out", v_out, dtype),
-            (True, False),
-            num_threads(),
-        )
-        return torch.sparse_coo_tensor(
-            torch.from_numpy(indices),
-            torch.from_numpy(values),
-            self.tex.shape,
-            is_coalesced=True,
-            check_invariants=False,
-        )
+        return texture_gradient(self.tex, uv, grad_to_numpy("v_out", v_out, dtype))
+
+
+def texture_gradient(tex: torch.Tensor, uv: torch.Tensor, v_out: np.ndarray) -> torch.Tensor:
+    """The coalesced sparse COO gradient of ``tex (Ht, Wt, C)`` from lookups at
+    ``uv (N, 2)`` whose output gradient is ``v_out (N, C)``."""
+    indices, values, _ = native("texture_backward")(
+        tex.detach().numpy(), uv.detach().numpy(), v_out, (True, False), num_threads()
+    )
+    return _sparse_gradient(indices, values, tex.shape)
+
+
+def _sparse_gradient(indices: np.ndarray, values: np.ndarray, shape) -> torch.Tensor:
+    return torch.sparse_coo_tensor(
+        torch.from_numpy(indices),
+        torch.from_numpy(values),
+        shape,
+        is_coalesced=True,
+        check_invariants=False,
+    )

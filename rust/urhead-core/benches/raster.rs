@@ -3,15 +3,18 @@
 //!
 //! `chain` runs rasterize → interpolate (UV) → texture (56 channels) → a fixed 56 → 3
 //! linear map standing in for SH evaluation → antialias, forward and backward (the texture
-//! gradient sparse). The other benchmarks time each op alone.
+//! gradient sparse). The other benchmarks time each op alone, and the covered pixels' maps
+//! as a lookup then SH shading against the fused `sh_texture`.
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use rayon::prelude::*;
 use urhead_core::memory::zeroed;
 use urhead_core::raster::{
     antialias_backward, antialias_forward, edge_topology, interpolate_backward, interpolate_forward,
-    rasterize_backward, rasterize_forward, texture_backward, texture_forward, AntialiasInputs,
+    rasterize_backward, rasterize_forward, sh_texture_backward, sh_texture_forward, texture_backward,
+    texture_forward, AntialiasInputs, ShTextureGradInputs, ShTextureInputs,
 };
+use urhead_core::shading::{shade_backward, shade_forward, ShadingInputs};
 use urhead_core::testing::Rng;
 use urhead_core::Camera;
 
@@ -266,6 +269,87 @@ fn bench_raster(c: &mut Criterion) {
     });
     group.bench_function("texture_backward", |b| {
         b.iter(|| texture_backward(&s.tex, TEX, TEX, CHANNELS, &uv, &g_sampled, true, true).unwrap())
+    });
+    // The mesh branch's pixel maps: the lookup at the covered pixels then SH shading (and
+    // the normal's columns), against the fused op; forward alone as a frame renders it,
+    // and forward + backward (rows' gradient and UV gradient) as a training step does.
+    let uv_covered =
+        interpolate_forward(&s.uvs, 2, &s.faces, &raster.tri_id, &raster.bary, h, w, listed).unwrap();
+    let n_covered = covered_pixels.len();
+    let dirs: Vec<f32> = (0..n_covered)
+        .flat_map(|i| {
+            let x = (i % 97) as f32 / 97.0 - 0.5;
+            let len = (x * x + 1.0).sqrt();
+            [x / len, 0.0, -1.0 / len]
+        })
+        .collect();
+    let v_pixel_maps = rng.vec::<f32>(n_covered * 6, -1.0, 1.0);
+    let v_rgb: Vec<f32> = v_pixel_maps
+        .chunks_exact(6)
+        .flat_map(|v| [v[0], v[1], v[2]])
+        .collect();
+    let pixel_maps = ShTextureInputs {
+        tex: &s.tex,
+        height: TEX,
+        width: TEX,
+        channels: CHANNELS,
+        uv: &uv_covered,
+        dirs: &dirs,
+        degree: 3,
+        extra: 48..51,
+    };
+    let lookup_then_shade = |backward: bool| {
+        let rows = texture_forward(&s.tex, TEX, TEX, CHANNELS, &uv_covered).unwrap();
+        let shading = ShadingInputs {
+            coeffs: &rows,
+            dirs: &dirs,
+            stride: CHANNELS,
+            degree: 3,
+        };
+        let rgb = shade_forward(&shading).unwrap();
+        if !backward {
+            return rgb.len();
+        }
+        let mut v_rows = shade_backward(&shading, &v_rgb).unwrap();
+        for (row, v) in v_rows
+            .chunks_exact_mut(CHANNELS)
+            .zip(v_pixel_maps.chunks_exact(6))
+        {
+            row[48..51].copy_from_slice(&v[3..]);
+        }
+        let g = texture_backward(&s.tex, TEX, TEX, CHANNELS, &uv_covered, &v_rows, false, true).unwrap();
+        g.v_uv.map_or(0, |v| v.len()) + v_rows.len()
+    };
+    let fused = |backward: bool| {
+        let out = sh_texture_forward(&pixel_maps, backward, backward).unwrap();
+        if !backward {
+            return out.values.len();
+        }
+        let g = sh_texture_backward(
+            &ShTextureGradInputs {
+                uv: &uv_covered,
+                dirs: &dirs,
+                degree: 3,
+                channels: CHANNELS,
+                extra: 48..51,
+                raw_rgb: out.raw_rgb.as_deref().unwrap(),
+                slopes: out.slopes.as_deref(),
+                v_values: &v_pixel_maps,
+            },
+            true,
+        )
+        .unwrap();
+        g.v_uv.map_or(0, |v| v.len()) + g.v_rows.map_or(0, |v| v.len())
+    };
+    group.bench_function("pixel_maps_lookup_then_shade_forward", |b| {
+        b.iter(|| lookup_then_shade(false))
+    });
+    group.bench_function("pixel_maps_sh_texture_forward", |b| b.iter(|| fused(false)));
+    group.bench_function("pixel_maps_lookup_then_shade_forward_backward", |b| {
+        b.iter(|| lookup_then_shade(true))
+    });
+    group.bench_function("pixel_maps_sh_texture_forward_backward", |b| {
+        b.iter(|| fused(true))
     });
     group.bench_function("antialias_forward", |b| {
         b.iter(|| antialias_forward(&aa).unwrap())

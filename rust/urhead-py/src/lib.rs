@@ -29,6 +29,7 @@ mod pool;
 mod raster;
 mod raytrace;
 mod rotate;
+mod sh_texture;
 mod shading;
 mod splat;
 mod ssim;
@@ -47,6 +48,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     splat::register(m)?;
     raytrace::register(m)?;
     rotate::register(m)?;
+    sh_texture::register(m)?;
     shading::register(m)?;
     ssim::register(m)?;
     Ok(())

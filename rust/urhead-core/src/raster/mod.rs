@@ -7,6 +7,8 @@
 //! - [`interpolate`]: per-vertex attributes → per-pixel attributes through the barycentrics.
 //! - [`texture`]: bilinear texture lookup; the texture gradient is a coalesced sparse
 //!   (COO) list of the texels that received gradient.
+//! - [`sh_texture`]: a texture lookup shaded with spherical harmonics in one pass, whose
+//!   backward never reads the texture again.
 //! - [`antialias`]: analytic silhouette antialiasing with gradients to vertex positions.
 //! - [`rasterize_uv`]: rasterization of the UV layout itself (per-texel triangle and
 //!   barycentrics), no gradient.
@@ -35,6 +37,7 @@ mod interpolate;
 mod rasterize;
 mod runs;
 mod setup;
+mod sh_texture;
 mod sparse;
 mod taps;
 mod texture;
@@ -45,6 +48,10 @@ pub use antialias::{antialias_backward, antialias_forward, AntialiasGrads, Antia
 pub use interpolate::{interpolate_backward, interpolate_forward, InterpolateGrads};
 pub use rasterize::{rasterize_backward, rasterize_forward};
 pub use setup::{GUARD_BAND_PX, SUBPIXEL_BITS};
+pub use sh_texture::{
+    sh_texture_backward, sh_texture_forward, ShTextureGradInputs, ShTextureGrads, ShTextureInputs,
+    ShTextureOutput,
+};
 pub use sparse::{SparseTexels, TexelEntries};
 pub use texture::{texture_backward, texture_forward, texture_gradient_entries, TextureGrads};
 pub use topology::edge_topology;

@@ -26,8 +26,8 @@ pub(crate) struct TexShape {
 pub(crate) struct Taps<T> {
     pub texel: [u32; 4],
     pub weight: [T; 4],
-    fx: T,
-    fy: T,
+    pub fx: T,
+    pub fy: T,
 }
 
 /// The one function both passes use to place a sample. `None` for non-finite coordinates.

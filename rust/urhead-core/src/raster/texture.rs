@@ -25,7 +25,7 @@ const MAX_TEXELS: usize = u32::MAX as usize;
 
 /// `o = Σ_k w_k·rows_k`, in blocks of 8 channels so the compiler emits full vectors.
 #[inline(always)]
-fn blend<T: Real>(o: &mut [T], rows: [&[T]; 4], w: [T; 4]) {
+pub(crate) fn blend<T: Real>(o: &mut [T], rows: [&[T]; 4], w: [T; 4]) {
     let c = o.len();
     let rows = rows.map(|r| &r[..c]);
     let full = c / 8 * 8;

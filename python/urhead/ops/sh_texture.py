@@ -1,0 +1,121 @@
+"""A texture lookup shaded with spherical harmonics in one pass, Rust forward and adjoint:
+the mesh branch's colour (and normal) at its covered pixels, whose backward never reads the
+maps again (the forward keeps each output's UV derivatives while the texels are in cache)."""
+
+from __future__ import annotations
+
+import torch
+
+from urhead._threads import num_threads
+from urhead.errors import DTypeError, InvalidArgumentError
+from urhead.ops._bridge import check_shape, float_dtype, from_numpy, grad_to_numpy, native, to_numpy
+from urhead.ops.texture import TextureGather, texture_gradient
+
+
+class _ShTexture(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, tex, uv, dirs, degree, extra, gather):
+        source = tex.detach() if gather is None else gather.tex
+        dtype = source.dtype
+        wants_grad = ctx.needs_input_grad[0] or ctx.needs_input_grad[1]
+        values, raw_rgb, slopes = native("sh_texture_forward")(
+            to_numpy("tex", source, dtype),
+            to_numpy("uv", uv, dtype),
+            to_numpy("dirs", dirs, dtype),
+            degree,
+            extra,
+            (wants_grad, ctx.needs_input_grad[1]),
+            num_threads(),
+        )
+        ctx.set_materialize_grads(False)
+        ctx.save_for_backward(uv, dirs, from_numpy(raw_rgb), from_numpy(slopes))
+        ctx.degree, ctx.extra, ctx.gather = degree, extra, gather
+        ctx.tex = source  # read only by a gradient to the texture without a gather
+        return torch.from_numpy(values)
+
+    @staticmethod
+    def backward(ctx, v_values):
+        need_tex, need_uv = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
+        if v_values is None or not (need_tex or need_uv):
+            return None, None, None, None, None, None
+        uv, dirs, raw_rgb, slopes = ctx.saved_tensors
+        tex = ctx.tex
+        v_rows, v_uv = native("sh_texture_backward")(
+            uv.numpy(),
+            dirs.numpy(),
+            ctx.degree,
+            tex.shape[-1],
+            ctx.extra,
+            raw_rgb.numpy(),
+            None if slopes is None else slopes.numpy(),
+            grad_to_numpy("v_values", v_values, tex.dtype),
+            need_tex,
+            num_threads(),
+        )
+        v_tex = None
+        if need_tex:
+            if ctx.gather is not None:
+                ctx.gather.record(uv.detach(), torch.from_numpy(v_rows))
+            else:
+                v_tex = texture_gradient(tex, uv, v_rows)
+        return v_tex, from_numpy(v_uv), None, None, None, None
+
+
+def sh_texture(
+    tex: torch.Tensor,
+    uv: torch.Tensor,
+    dirs: torch.Tensor,
+    degree: int,
+    extra: slice | None = None,
+    *,
+    gather: TextureGather | None = None,
+) -> torch.Tensor:
+    """SH colour of bilinear texture samples along view directions, and some channels as
+    they are: the same values as ``texture(tex, uv)`` followed by
+    :func:`~urhead.ops.sh_shade` on the rows and a slice of them, bit for bit.
+
+    Args:
+        tex: (Ht, Wt, C) texture whose first 3·(degree + 1)² channels are SH coefficients,
+            coefficient-major (as :func:`~urhead.ops.sh_shade` reads them), float32 or
+            float64, contiguous; usually a parameter.
+        uv: (P, 2) texture coordinates, the :func:`~urhead.ops.texture` convention.
+        dirs: (P, 3) unit view directions; constants (no gradient flows to them), finite.
+        degree: 0–3.
+        extra: channels after the colour to return as they are (e.g. the normal map), or
+            None.
+        gather: a :class:`~urhead.ops.TextureGather` of ``tex``: the texture's gradient is
+            recorded there (as for :meth:`TextureGather.sample`) instead of flowing back.
+
+    Returns:
+        (P, 3 + E): ``max(Σ_k b_k(dir)·c_k + 0.5, 0)`` per colour, then the E ``extra``
+        channels.
+
+    Gradients: to ``uv`` (from UV derivatives the forward keeps, so the backward reads no
+    texel; equal to the lookup's up to rounding) and to ``tex`` (a coalesced sparse COO
+    tensor as :func:`~urhead.ops.texture` gives, or recorded in ``gather``). A colour
+    channel clamped at 0 passes no gradient; a sample with a non-finite coordinate reads
+    zeros (colour 0.5) and passes none to ``uv``. Every sample is independent: the same bits
+    for any thread count. Threads: ``URHEAD_NUM_THREADS`` or ``torch.get_num_threads()``.
+    """
+    dtype = float_dtype("tex", tex)
+    check_shape("tex", tex, 3, None, "(Ht, Wt, C)")
+    for name, t, width in (("uv", uv, 2), ("dirs", dirs, 3)):
+        if t.dtype != dtype:
+            raise DTypeError(f"{name} must have the dtype of tex ({dtype}), got {t.dtype}")
+        check_shape(name, t, 2, width, f"(P, {width})")
+    if isinstance(degree, bool) or not isinstance(degree, int) or not 0 <= degree <= 3:
+        raise InvalidArgumentError(f"degree must be an int in [0, 3], got {degree!r}")
+    if extra is None:
+        extra = slice(0, 0)
+    if extra.step not in (None, 1) or extra.start is None or extra.stop is None:
+        raise InvalidArgumentError(f"extra must be a slice start:stop of channels, got {extra}")
+    if gather is not None and gather.source is not tex:
+        raise InvalidArgumentError("gather must be a TextureGather of tex")
+    return _ShTexture.apply(
+        tex,
+        uv.contiguous(),
+        dirs.detach().contiguous(),
+        degree,
+        (int(extra.start), int(extra.stop)),
+        gather,
+    )

@@ -1,0 +1,232 @@
+"""sh_texture: the fused lookup + SH shading against its plain-torch reference (float64 values
+and both gradients), finite differences, the lookup-then-shade path it replaces (bit for bit
+in float32, values and the texture's per-sample gradient), special coordinates (NUMERICS.md
+case 7), threads, bad input, a TextureGather, and the avatar's mesh branch with shading maps."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+import urhead.model.avatar
+from test_model import camera, make_avatar
+from urhead.errors import DTypeError, InvalidArgumentError, NonFiniteError, ShapeError
+from urhead.head import procedural_head
+from urhead.model.map_layout import MapLayout
+from urhead.ops import TextureGather, _reference, sh_shade, sh_texture, texture
+
+F64 = torch.float64
+CHANNELS = 56  # the paper's layout: 48 SH colour, normal 48:51, then 5 more
+NORMAL = slice(48, 51)
+
+
+def _case(n=300, size=(9, 7), dtype=F64, seed=0, spread=(-0.1, 1.1)):
+    """A texture, UVs over it and a little beyond, unit directions."""
+    g = torch.Generator().manual_seed(seed)
+    tex = torch.randn(*size, CHANNELS, generator=g, dtype=F64) * 0.5
+    uv = spread[0] + (spread[1] - spread[0]) * torch.rand(n, 2, generator=g, dtype=F64)
+    dirs = torch.nn.functional.normalize(torch.randn(n, 3, generator=g, dtype=F64), dim=1)
+    return tex.to(dtype), uv.to(dtype), dirs.to(dtype)
+
+
+def _run(fn, tex, uv, dirs, degree, extra, weights):
+    """Values and the gradients of Σ w·values to tex (dense) and uv."""
+    t = tex.clone().requires_grad_(True)
+    u = uv.clone().requires_grad_(True)
+    out = fn(t, u, dirs, degree, extra)
+    (out * weights).sum().backward()
+    g_tex = t.grad.to_dense() if t.grad.is_sparse else t.grad
+    return out.detach(), g_tex, u.grad
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+@pytest.mark.parametrize("extra", [None, NORMAL, slice(48, 56)])
+def test_matches_reference_float64(degree, extra):
+    tex, uv, dirs = _case(seed=degree)
+    width = 3 + (0 if extra is None else extra.stop - extra.start)
+    weights = torch.randn(300, width, generator=torch.Generator().manual_seed(1), dtype=F64)
+    ours = _run(sh_texture, tex, uv, dirs, degree, extra, weights)
+    ref = _run(_reference.sh_texture, tex, uv, dirs, degree, extra, weights)
+    assert ours[0].shape == (300, width)
+    for a, b in zip(ours, ref, strict=True):
+        assert (a - b).abs().max() <= 1e-13 * (1 + b.abs().max())
+
+
+def test_gradcheck_uv_float64():
+    tex, uv, dirs = _case(n=40, size=(5, 4), seed=2, spread=(0.1, 0.9))
+    u = uv.requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda u: sh_texture(tex, u, dirs, 3, NORMAL), (u,))
+
+
+def test_float32_is_the_lookup_then_shading_bit_for_bit():
+    """Values and the texture's per-sample gradient (what a TextureGather records) equal
+    those of ``texture`` + ``sh_shade`` + a slice exactly; the UV gradient to rounding."""
+    tex, uv, dirs = _case(n=5000, size=(64, 48), dtype=torch.float32, seed=3)
+    weights = torch.randn(5000, 6, generator=torch.Generator().manual_seed(4))
+    results = []
+    for fused in (True, False):
+        maps = tex.clone().requires_grad_(True)
+        gather = TextureGather(maps)
+        u = uv.clone().requires_grad_(True)
+        if fused:
+            out = sh_texture(maps, u, dirs, 3, NORMAL, gather=gather)
+        else:
+            rows = gather.sample(u)
+            out = torch.cat([sh_shade(rows, dirs, 3), rows[:, NORMAL]], 1)
+        (out * weights).sum().backward()
+        results.append((out.detach(), *gather.samples(), u.grad))
+    (out, s_uv, s_rows, g_uv), (out0, s_uv0, s_rows0, g_uv0) = results
+    assert torch.equal(out, out0) and torch.equal(s_uv, s_uv0) and torch.equal(s_rows, s_rows0)
+    assert torch.allclose(g_uv, g_uv0, rtol=1e-4, atol=1e-4 * g_uv0.abs().max())
+
+
+@pytest.mark.parametrize("size", [(1, 1), (3, 5)])
+def test_case7_special_coordinates(size, stability):
+    """Non-finite coordinates read zeros (colour 0.5) and pass no UV gradient; clamped ones
+    pass none along their axis; values agree with the reference everywhere."""
+    ht, wt = size
+    special = [-1e-7, 0.0, 1.0, 1.0 + 1e-7, 1e20, -1e20, math.inf, -math.inf, math.nan, 0.5]
+    uv = torch.tensor([[u, v] for u in special for v in special], dtype=F64)
+    finite = torch.isfinite(uv).all(-1)
+    tex, _, _ = _case(size=size, seed=5)
+    dirs = torch.nn.functional.normalize(torch.ones(len(uv), 3, dtype=F64), dim=1)
+    weights = torch.ones(len(uv), 6, dtype=F64)
+    out, g_tex, g_uv = _run(sh_texture, tex, uv, dirs, 3, NORMAL, weights)
+    expected = _reference.sh_texture(tex, uv, dirs, 3, NORMAL)
+    stability.record(
+        7, "sh_texture: max abs error vs float64 reference", (out - expected).abs().max(), 1e-14
+    )
+    assert torch.equal(out[~finite, :3], torch.full_like(out[~finite, :3], 0.5))
+    assert out[~finite, 3:].eq(0).all() and torch.isfinite(g_tex).all()
+    stability.record(
+        7, "sh_texture: max |UV gradient| at non-finite UV", g_uv[~finite].abs().max(), 0
+    )
+    u_out = (uv[:, 0] < 0.5 / wt) | (uv[:, 0] > 1 - 0.5 / wt)
+    v_out = (uv[:, 1] < 0.5 / ht) | (uv[:, 1] > 1 - 0.5 / ht)
+    assert (g_uv[finite & u_out, 0] == 0).all() and (g_uv[finite & v_out, 1] == 0).all()
+
+
+def test_clamped_colour_passes_no_gradient():
+    tex = torch.zeros(2, 2, CHANNELS, dtype=F64)
+    tex[..., 0] = -10.0  # red's DC term: far below 0 everywhere
+    tex[0, 0, 48] = 1.0
+    uv = torch.tensor([[0.3, 0.6], [0.7, 0.2]], dtype=F64)
+    dirs = torch.tensor([[0.0, 0.0, 1.0]] * 2, dtype=F64)
+    out, g_tex, g_uv = _run(sh_texture, tex, uv, dirs, 0, NORMAL, torch.ones(2, 6, dtype=F64))
+    assert out[:, 0].eq(0).all() and out[:, 1:3].eq(0.5).all()
+    assert g_tex[..., 0].eq(0).all() and g_tex[..., 1].ne(0).any()
+    # Only the normal's channel 48 varies, so it alone moves the UV gradient.
+    assert torch.allclose(
+        g_uv, _run(lambda t, u, *_: texture(t, u)[:, 48:49], tex, uv, dirs, 0, None, 1.0)[2]
+    )
+
+
+def test_only_the_requested_gradients_and_no_graph_without_them():
+    tex, uv, dirs = _case(n=50, dtype=torch.float32, seed=6)
+    t = tex.clone().requires_grad_(True)
+    out = sh_texture(t, uv, dirs, 2, NORMAL)
+    out.sum().backward()
+    assert t.grad.is_sparse and t.grad.shape == tex.shape
+    u = uv.clone().requires_grad_(True)
+    sh_texture(tex, u, dirs, 2).sum().backward()
+    assert u.grad.shape == (50, 2)
+    assert not sh_texture(tex, uv, dirs, 2).requires_grad
+
+
+def test_same_bits_for_any_thread_count(monkeypatch, stability):
+    tex, uv, dirs = _case(n=20_000, size=(128, 96), dtype=torch.float32, seed=7)
+    weights = torch.randn(20_000, 6, generator=torch.Generator().manual_seed(8))
+    results = []
+    for threads in ("1", "2", "3"):
+        monkeypatch.setenv("URHEAD_NUM_THREADS", threads)
+        maps = tex.clone().requires_grad_(True)
+        gather = TextureGather(maps)
+        u = uv.clone().requires_grad_(True)
+        out = sh_texture(maps, u, dirs, 3, NORMAL, gather=gather)
+        (out * weights).sum().backward()
+        results.append((out.detach(), gather.samples()[1], u.grad))
+    for run in results[1:]:
+        assert all(torch.equal(a, b) for a, b in zip(run, results[0], strict=True))
+    stability.checked(27, "sh_texture: 1, 2, 3 threads, values and both gradients", 3)
+
+
+def test_bad_input_is_a_named_error(stability):
+    tex, uv, dirs = _case(n=6, dtype=torch.float32)
+    sh_texture(tex, uv, dirs, 3, NORMAL)
+    other = TextureGather(tex.clone())
+    bad = [
+        (ShapeError, "tex", (tex[0], uv, dirs, 3), {}),
+        (ShapeError, "uv", (tex, uv[:, :1], dirs, 3), {}),
+        (ShapeError, "dirs", (tex, uv, dirs[:, :2], 3), {}),
+        (ShapeError, "dirs", (tex, uv, dirs[:5], 3), {}),
+        (DTypeError, "uv", (tex, uv.double(), dirs, 3), {}),
+        (DTypeError, "dirs", (tex, uv, dirs.double(), 3), {}),
+        (InvalidArgumentError, "degree", (tex, uv, dirs, 4), {}),
+        (InvalidArgumentError, "extra", (tex, uv, dirs, 3, slice(40, 51)), {}),
+        (InvalidArgumentError, "extra", (tex, uv, dirs, 3, slice(48, 60)), {}),
+        (InvalidArgumentError, "extra", (tex, uv, dirs, 3, slice(48, 51, 2)), {}),
+        (InvalidArgumentError, "tex", (tex[..., :40], uv, dirs, 3), {}),
+        (InvalidArgumentError, "gather", (tex, uv, dirs, 3), {"gather": other}),
+    ]
+    for error, name, args, kwargs in bad:
+        with pytest.raises(error, match=name):
+            sh_texture(*args, **kwargs)
+    nan_dirs = dirs.clone()
+    nan_dirs[2, 1] = float("nan")
+    with pytest.raises(NonFiniteError, match="dirs"):
+        sh_texture(tex, uv, nan_dirs, 3)
+    nan_tex = tex.clone()
+    nan_tex[:] = float("inf")
+    with pytest.raises(NonFiniteError, match="tex"):
+        sh_texture(nan_tex, uv, dirs, 3)
+    # No samples: empty values and gradients.
+    u = torch.zeros(0, 2, requires_grad=True)
+    out = sh_texture(tex, u, torch.zeros(0, 3), 3, NORMAL)
+    out.sum().backward()
+    assert out.shape == (0, 6) and u.grad.shape == (0, 2)
+    stability.checked(
+        26, "sh_texture: wrong shapes, dtypes, ranges named; empty input", len(bad) + 2
+    )
+
+
+def _lookup_then_shade(maps, uv, dirs, degree, extra=None, *, gather=None):
+    """What the mesh branch computed before the fused op: the whole rows, then the parts."""
+    rows = texture(maps, uv) if gather is None else gather.sample(uv)
+    return torch.cat([sh_shade(rows, dirs, degree), rows[:, extra or slice(0, 0)]], 1)
+
+
+@pytest.mark.parametrize("shading", [False, True])
+def test_avatar_mesh_branch_matches_the_lookup_path(shading, monkeypatch):
+    """shade_mesh with the fused op against the rows-then-shade path, with and without
+    pose-driven shading maps (read with the normal as one range): the same image, normals
+    and recorded map gradient bit for bit, vertex gradients to rounding."""
+    avatar = make_avatar(procedural_head(0), gaussians=False, sh_degree=2)
+    g = torch.Generator().manual_seed(0)
+    if shading:
+        avatar.layout = MapLayout(2, False, shading=True)
+        a = torch.randn(*avatar.maps.shape[:2], 9, generator=g) * 0.3
+        avatar.maps = torch.cat([avatar.maps, a], -1)
+    avatar.maps.requires_grad_(True)
+    params = avatar.frame(3)
+    pose = params.pose + torch.randn(params.pose.shape, generator=g) * 0.2
+    params = params._replace(pose=pose)
+    cam = camera(64)
+    weights = torch.randn(64, 64, 3, generator=g)
+    results = []
+    for fn in (sh_texture, _lookup_then_shade):
+        monkeypatch.setattr(urhead.model.avatar, "sh_texture", fn)
+        gather = TextureGather(avatar.maps)
+        verts, rotations = avatar.skin(params)
+        displaced = verts.detach().requires_grad_(True)
+        mesh = avatar.shade_mesh(displaced, displaced, rotations.detach(), cam, True, gather)
+        ((mesh.image * weights).sum() + mesh.normals.sum()).backward()
+        results.append(
+            (mesh.image.detach(), mesh.normals.detach(), *gather.samples(), displaced.grad)
+        )
+    (image, normals, s_uv, s_rows, g_verts), expected = results
+    assert torch.equal(image, expected[0]) and torch.equal(normals, expected[1])
+    assert torch.equal(s_uv, expected[2]) and torch.equal(s_rows, expected[3])
+    assert s_rows[:, avatar.layout.normal].ne(0).any()
+    assert torch.allclose(g_verts, expected[4], rtol=1e-4, atol=1e-5 * expected[4].abs().max())
