@@ -32,6 +32,7 @@ mod rotate;
 mod shading;
 mod splat;
 mod ssim;
+mod uv_error;
 
 use pyo3::prelude::*;
 
@@ -49,5 +50,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     rotate::register(m)?;
     shading::register(m)?;
     ssim::register(m)?;
+    uv_error::register(m)?;
     Ok(())
 }
