@@ -478,3 +478,335 @@ pub fn accumulate_uv_error<T: Real>(
         Ok(())
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use std::collections::BinaryHeap;
+
+    use super::*;
+    use crate::testing::Rng;
+
+    /// Chamfer distance (in the kernel's units) from `(0, 0)` to every offset of a
+    /// `(2h − 1) × (2w − 1)` window, by Dijkstra over the mask's 16 moves: the metric the
+    /// two passes must reach.
+    fn chamfer_metric(h: usize, w: usize) -> impl Fn(usize, usize, usize, usize) -> i64 {
+        let moves: Vec<(i64, i64, i64)> = (-2i64..=2)
+            .flat_map(|r| (-2i64..=2).map(move |c| (r, c)))
+            .filter_map(|(r, c)| match (r.abs().min(c.abs()), r.abs().max(c.abs())) {
+                (0, 1) => Some((r, c, STRAIGHT as i64)),
+                (1, 1) => Some((r, c, DIAGONAL as i64)),
+                (1, 2) => Some((r, c, KNIGHT as i64)),
+                _ => None,
+            })
+            .collect();
+        let (rows, cols) = (2 * h as i64 - 1, 2 * w as i64 - 1);
+        let mut best = vec![i64::MAX; (rows * cols) as usize];
+        let centre = ((h as i64 - 1) * cols + w as i64 - 1) as usize;
+        best[centre] = 0;
+        let mut queue = BinaryHeap::from([(0i64, centre)]);
+        while let Some((neg, at)) = queue.pop() {
+            if -neg > best[at] {
+                continue;
+            }
+            let (r, c) = (at as i64 / cols, at as i64 % cols);
+            for &(dr, dc, weight) in &moves {
+                let (nr, nc) = (r + dr, c + dc);
+                if (0..rows).contains(&nr) && (0..cols).contains(&nc) {
+                    let next = (nr * cols + nc) as usize;
+                    if best[at] + weight < best[next] {
+                        best[next] = best[at] + weight;
+                        queue.push((-best[next], next));
+                    }
+                }
+            }
+        }
+        move |r0, c0, r1, c1| {
+            let dr = r1 as i64 - r0 as i64 + h as i64 - 1;
+            let dc = c1 as i64 - c0 as i64 + w as i64 - 1;
+            best[(dr * cols + dc) as usize]
+        }
+    }
+
+    #[test]
+    fn labels_a_seed_at_the_least_chamfer_distance() {
+        let mut rng = Rng::new(1);
+        for trial in 0..40 {
+            let (h, w) = (1 + trial % 9 + trial / 4, 1 + (trial * 7) % 23);
+            let density = [0.01, 0.05, 0.2, 0.6][trial % 4];
+            let covered: Vec<bool> = (0..h * w).map(|_| rng.uniform(0.0, 1.0) < density).collect();
+            let nearest = nearest_covered(&covered, h, w).unwrap();
+            let seeds: Vec<usize> = (0..h * w).filter(|&p| covered[p]).collect();
+            if seeds.is_empty() {
+                assert!(nearest.iter().all(|&l| l == -1));
+                continue;
+            }
+            let metric = chamfer_metric(h, w);
+            let d = |p: usize, s: usize| metric(p / w, p % w, s / w, s % w);
+            for p in 0..h * w {
+                let label = nearest[p] as usize;
+                assert!(covered[label], "trial {trial}: pixel {p} labelled off the seeds");
+                let least = seeds.iter().map(|&s| d(p, s)).min().unwrap();
+                assert_eq!(d(p, label), least, "trial {trial}: pixel {p}");
+            }
+        }
+    }
+
+    #[test]
+    fn ties_go_where_opencv_sends_them() {
+        // Expected labels from cv2.distanceTransformWithLabels(DIST_L2, 3, DIST_LABEL_PIXEL).
+        let case = |h: usize, w: usize, seeds: &[usize]| {
+            let covered: Vec<bool> = (0..h * w).map(|p| seeds.contains(&p)).collect();
+            nearest_covered(&covered, h, w).unwrap()
+        };
+        assert_eq!(case(1, 3, &[0, 2]), [0, 0, 2]);
+        let corners = [
+            [0, 0, 0, 5, 5, 5],
+            [0, 0, 0, 5, 5, 5],
+            [0, 0, 0, 5, 5, 5],
+            [0, 0, 29, 29, 29, 29],
+            [0, 29, 29, 29, 29, 29],
+        ];
+        assert_eq!(case(5, 6, &[0, 5, 29]), corners.concat());
+        let diamond = [
+            [10, 2, 2, 2, 2],
+            [10, 2, 2, 2, 14],
+            [10, 10, 2, 14, 14],
+            [10, 10, 22, 14, 14],
+            [10, 22, 22, 22, 14],
+        ];
+        assert_eq!(case(5, 5, &[2, 10, 14, 22]), diamond.concat());
+    }
+
+    /// A frame: `h × w` f32 images, a mask that is a disc larger than the covered disc
+    /// (pixels the mesh misses around it), smooth UVs; `pad` empty pixels on every side.
+    struct Frame {
+        image: Vec<f32>,
+        target: Vec<f32>,
+        mask: Vec<f32>,
+        pixels: Vec<i64>,
+        uv: Vec<f32>,
+        h: usize,
+        w: usize,
+    }
+
+    impl Frame {
+        fn new(h: usize, w: usize, pad: usize, seed: u64) -> Self {
+            let mut rng = Rng::new(seed);
+            let (ph, pw) = (h + 2 * pad, w + 2 * pad);
+            let mut f = Frame {
+                image: vec![0.0; ph * pw * 3],
+                target: vec![0.0; ph * pw * 3],
+                mask: vec![0.0; ph * pw],
+                pixels: vec![],
+                uv: vec![],
+                h: ph,
+                w: pw,
+            };
+            for r in 0..h {
+                for c in 0..w {
+                    let p = (r + pad) * pw + c + pad;
+                    for k in 0..3 {
+                        f.image[3 * p + k] = rng.uniform(0.0, 1.0) as f32;
+                        f.target[3 * p + k] = rng.uniform(0.0, 1.0) as f32;
+                    }
+                    let radius = (r as f64 - h as f64 / 2.0).hypot(c as f64 - w as f64 / 3.0);
+                    f.mask[p] = if radius < 0.45 * h as f64 {
+                        rng.uniform(0.5, 1.0) as f32
+                    } else {
+                        0.0
+                    };
+                    if radius < 0.3 * h as f64 || rng.uniform(0.0, 1.0) < 0.02 {
+                        f.pixels.push(p as i64);
+                        f.uv.extend([c as f32 / w as f32, 1.0 - r as f32 / h as f32]);
+                    }
+                }
+            }
+            f
+        }
+
+        fn inputs(&self) -> UvErrorInputs<'_, f32> {
+            UvErrorInputs {
+                image: &self.image,
+                target: &self.target,
+                mask: &self.mask,
+                pixels: &self.pixels,
+                uv: &self.uv,
+                height: self.h,
+                width: self.w,
+            }
+        }
+
+        /// The grids after adding this frame to grids holding `start`.
+        fn grids(&self, side: usize, start: f64) -> (Vec<f64>, Vec<f64>) {
+            let (mut error, mut count) = (vec![start; side * side], vec![start; side * side]);
+            accumulate_uv_error(&self.inputs(), side, &mut error, &mut count).unwrap();
+            (error, count)
+        }
+    }
+
+    #[test]
+    fn charges_covered_pixels_then_missed_ones_at_the_nearest_covered_uv() {
+        let f = Frame::new(20, 30, 0, 2);
+        let side = 8;
+        // The same sums, written plainly: per-frame sums in the documented order.
+        let mut sums = vec![0.0f64; 2 * side * side];
+        let inputs = f.inputs();
+        let mut add = |k: usize, p: usize| {
+            let cell = inputs.cell(k, side);
+            sums[2 * cell] += inputs.error(p);
+            sums[2 * cell + 1] += 1.0;
+        };
+        for (k, &p) in f.pixels.iter().enumerate() {
+            add(k, p as usize);
+        }
+        let covered: Vec<bool> = (0..f.h * f.w).map(|p| f.pixels.contains(&(p as i64))).collect();
+        let nearest = nearest_covered(&covered, f.h, f.w).unwrap();
+        let mut missed = 0;
+        for p in 0..f.h * f.w {
+            if !covered[p] && f.mask[p] > 0.5 {
+                let k = f.pixels.iter().position(|&q| q == nearest[p]).unwrap();
+                add(k, p);
+                missed += 1;
+            }
+        }
+        assert!(missed > 20, "the frame has pixels the mesh misses");
+        let (error, count) = f.grids(side, 0.25);
+        for cell in 0..side * side {
+            assert_eq!(error[cell], 0.25 + sums[2 * cell]);
+            assert_eq!(count[cell], 0.25 + sums[2 * cell + 1]);
+        }
+        assert_eq!(
+            count.iter().sum::<f64>(),
+            0.25 * 64.0 + (f.pixels.len() + missed) as f64
+        );
+    }
+
+    #[test]
+    fn the_searched_box_changes_nothing() {
+        // The same frame inside a larger empty image: the box search equals the whole one.
+        for seed in 0..4 {
+            let tight = Frame::new(17, 23, 0, seed).grids(16, 0.0);
+            let padded = Frame::new(17, 23, 9, seed).grids(16, 0.0);
+            assert_eq!(tight, padded);
+        }
+    }
+
+    #[test]
+    fn reused_buffers_leave_no_trace() {
+        let small = Frame::new(9, 11, 1, 3);
+        let large = Frame::new(40, 37, 0, 4);
+        let first = (large.grids(8, 0.0), small.grids(4, 0.0));
+        // Other sizes and grids in between, an error half-way: the same results after.
+        assert_eq!(small.grids(16, 0.0), Frame::new(9, 11, 1, 3).grids(16, 0.0));
+        let mut bad = small.pixels.clone();
+        bad.push(bad[0]);
+        let inputs = UvErrorInputs {
+            pixels: &bad,
+            uv: &[small.uv.clone(), vec![0.5; 2]].concat(),
+            ..small.inputs()
+        };
+        assert!(accumulate_uv_error(&inputs, 4, &mut [0.0; 16], &mut [0.0; 16]).is_err());
+        assert_eq!((large.grids(8, 0.0), small.grids(4, 0.0)), first);
+    }
+
+    #[test]
+    fn no_covered_pixel_no_missed_pixel_and_nan() {
+        let mut f = Frame::new(12, 12, 2, 5);
+        let side = 4;
+        // Nothing covered: nothing added.
+        let none = UvErrorInputs {
+            pixels: &[],
+            uv: &[],
+            ..f.inputs()
+        };
+        let (mut error, mut count) = (vec![1.0; 16], vec![1.0; 16]);
+        accumulate_uv_error(&none, side, &mut error, &mut count).unwrap();
+        assert_eq!((error, count), (vec![1.0; 16], vec![1.0; 16]));
+        // An empty mask: covered pixels add zero error, each counts once.
+        let mask = std::mem::replace(&mut f.mask, vec![0.0; f.h * f.w]);
+        let (error, count) = f.grids(side, 0.0);
+        assert!(error.iter().all(|&e| e == 0.0));
+        assert_eq!(count.iter().sum::<f64>(), f.pixels.len() as f64);
+        f.mask = mask;
+        // NaN in the image: the cell it is charged to, and no other, becomes NaN.
+        let p = f.pixels[5] as usize;
+        f.image[3 * p + 1] = f32::NAN;
+        let (error, _) = f.grids(side, 0.0);
+        let nan_cell = f.inputs().cell(5, side);
+        for (cell, e) in error.iter().enumerate() {
+            assert_eq!(e.is_nan(), cell == nan_cell, "cell {cell}");
+        }
+    }
+
+    #[test]
+    fn rejects_bad_arguments_before_touching_the_grids() {
+        let f = Frame::new(6, 7, 0, 6);
+        let ok = f.inputs();
+        let run = |inputs: &UvErrorInputs<'_, f32>, side: usize, cells: usize| {
+            let (mut error, mut count) = (vec![0.5; cells], vec![0.5; cells]);
+            let result = accumulate_uv_error(inputs, side, &mut error, &mut count);
+            let untouched = error.iter().chain(&count).all(|&x| x == 0.5);
+            assert!(result.is_ok() || untouched, "grids touched by a call that failed");
+            result.err()
+        };
+        assert!(run(&ok, 4, 16).is_none());
+        let shape = |arg: &str, e: Option<Error>| matches!(e, Some(Error::Shape { arg: a, .. }) if a == arg);
+        assert!(shape(
+            "image",
+            run(
+                &UvErrorInputs {
+                    image: &f.image[3..],
+                    ..ok
+                },
+                4,
+                16
+            )
+        ));
+        assert!(shape(
+            "mask",
+            run(
+                &UvErrorInputs {
+                    mask: &f.mask[1..],
+                    ..ok
+                },
+                4,
+                16
+            )
+        ));
+        assert!(shape("uv", run(&UvErrorInputs { uv: &f.uv[2..], ..ok }, 4, 16)));
+        assert!(shape("error", run(&ok, 4, 15)));
+        let out_of_range = [f.pixels.clone(), vec![42]].concat();
+        let uv = [f.uv.clone(), vec![0.5; 2]].concat();
+        let e = run(
+            &UvErrorInputs {
+                pixels: &out_of_range,
+                uv: &uv,
+                ..ok
+            },
+            4,
+            16,
+        );
+        assert!(matches!(
+            e,
+            Some(Error::IndexOutOfRange {
+                arg: "pixels",
+                value: 42,
+                ..
+            })
+        ));
+        let twice = [f.pixels.clone(), vec![f.pixels[3]]].concat();
+        let e = run(
+            &UvErrorInputs {
+                pixels: &twice,
+                uv: &uv,
+                ..ok
+            },
+            4,
+            16,
+        );
+        assert!(matches!(e, Some(Error::Invalid { arg: "pixels", .. })));
+        assert!(matches!(run(&ok, 0, 0), Some(Error::Invalid { arg: "side", .. })));
+        let e = nearest_covered(&[true; 5], 2, 3).unwrap_err();
+        assert!(matches!(e, Error::Shape { arg: "covered", .. }));
+    }
+}
