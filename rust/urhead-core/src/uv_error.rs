@@ -12,7 +12,8 @@
 //! Euclidean one; an exact Euclidean transform would move charges between equally good
 //! pixels for no gain in the fit.
 //!
-//! The transform runs on the bounding box of the covered and missed pixels only, which
+//! The transform runs only on the bounding box of the covered pixels and the mask (which
+//! holds every missed pixel), which
 //! changes no distance and no label: an optimal chamfer path between two pixels never
 //! leaves their bounding box (two moves of opposite sign along an axis are always beaten
 //! by a monotone combination, checked for every pair of the mask's moves), so a candidate
