@@ -13,9 +13,8 @@
 //! pixels for no gain in the fit.
 //!
 //! The transform runs only on the bounding box of the covered pixels and the mask (which
-//! holds every missed pixel), which
-//! changes no distance and no label: an optimal chamfer path between two pixels never
-//! leaves their bounding box (two moves of opposite sign along an axis are always beaten
+//! holds every missed pixel). That changes no distance and no label: an optimal chamfer
+//! path between two pixels never leaves their bounding box (two moves of opposite sign along an axis are always beaten
 //! by a monotone combination, checked for every pair of the mask's moves), so a candidate
 //! from outside the box is strictly worse than the best one inside and never wins or ties.
 //!
