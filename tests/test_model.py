@@ -25,8 +25,7 @@ from urhead.model import (
 )
 from urhead.model.initial_maps import fill_holes, initial_maps, texel_surface
 from urhead.model.io import write_directory_atomically
-from urhead.model.sampling import nearest_pixel
-from urhead.ops import TextureGather
+from urhead.ops import TextureGather, nearest_covered_pixel
 
 
 @pytest.fixture(scope="module")
@@ -210,8 +209,12 @@ def test_error_driven_sampling_follows_the_error(head):
     on_atlas = surface.uniform(4000, rng)
     acc = ErrorAccumulator(16)
     hot = on_atlas[(on_atlas[:, 0] < 0.5) & (on_atlas[:, 1] > 0.5)]
-    acc.add(torch.from_numpy(on_atlas), torch.full((len(on_atlas),), 0.01))
-    acc.add(torch.from_numpy(hot), torch.full((len(hot),), 10.0))
+    for uv, error in ((on_atlas, 0.01), (hot, 10.0)):
+        # A 1 × P frame whose every pixel is covered and sees one of the UV points.
+        n = len(uv)
+        target = torch.zeros(1, n, 3)
+        image = target + torch.tensor([error, 0.0, 0.0])
+        acc.add(image, target, torch.ones(1, n), torch.arange(n), torch.from_numpy(uv))
     drawn = acc.sample(500, surface, rng)
     assert 0 < len(drawn) <= 500
     inside = (drawn[:, 0] < 0.5) & (drawn[:, 1] > 0.5)
@@ -222,10 +225,10 @@ def test_error_driven_sampling_follows_the_error(head):
     assert len(acc.sample(10, surface, rng)) == 0  # no error, nothing drawn
 
 
-def test_nearest_pixel_charges_misses_to_the_closest_covered_pixel():
+def test_nearest_covered_pixel_charges_misses_to_the_closest_covered_pixel():
     covered = torch.zeros(6, 7, dtype=torch.bool)
     covered[1, 1] = covered[4, 5] = True
-    nearest = nearest_pixel(covered).reshape(6, 7)
+    nearest = nearest_covered_pixel(covered).reshape(6, 7)
     assert nearest[1, 1] == 1 * 7 + 1 and nearest[4, 5] == 4 * 7 + 5
     assert nearest[0, 0] == 8 and nearest[5, 6] == 33
 

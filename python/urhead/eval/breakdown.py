@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 
 from urhead.head.model import REGION_NAMES
-from urhead.model.sampling import nearest_pixel
+from urhead.ops import nearest_covered_pixel
 
 BAND_PX = 2
 """Half-width of the silhouette band, pixels."""
@@ -55,7 +55,7 @@ def pixel_regions(tri_id: torch.Tensor, face_region: torch.Tensor) -> torch.Tens
     covered = tri_id >= 0
     if not bool(covered.any()):
         return torch.full(tri_id.shape, -1, dtype=torch.int64)
-    nearest = nearest_pixel(covered)
+    nearest = nearest_covered_pixel(covered)
     return face_region[tri_id.reshape(-1)[nearest].long()].reshape(tri_id.shape)
 
 

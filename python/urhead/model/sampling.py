@@ -11,8 +11,8 @@ import torch
 
 from urhead.errors import InvalidArgumentError
 from urhead.head.uv import UvLookup
-from urhead.model.avatar import Avatar, Render
-from urhead.ops import texture
+from urhead.model.avatar import Avatar
+from urhead.ops import accumulate_uv_error, texture
 
 log = logging.getLogger("urhead.fit")
 
@@ -56,14 +56,23 @@ class ErrorAccumulator:
         self.error = torch.zeros(self.grid * self.grid, dtype=torch.float64)
         self.count = torch.zeros(self.grid * self.grid, dtype=torch.float64)
 
-    def add(self, uv: torch.Tensor, error: torch.Tensor) -> None:
-        """uv: (P, 2) UVs seen at covered pixels; error: (P,) their photometric error."""
-        g = self.grid
-        col = (uv[:, 0] * g).long().clamp(0, g - 1)
-        row = ((1 - uv[:, 1]) * g).long().clamp(0, g - 1)
-        cell = row * g + col
-        self.error += torch.bincount(cell, error.double(), minlength=g * g)
-        self.count += torch.bincount(cell, minlength=g * g).double()
+    def add(
+        self,
+        image: torch.Tensor,
+        target: torch.Tensor,
+        mask: torch.Tensor,
+        pixels: torch.Tensor,
+        uv: torch.Tensor,
+    ) -> None:
+        """Charges a frame's per-pixel error ‖I − I_gt‖₁ inside the mask to UV: a covered
+        pixel at the UV it sees; a pixel inside the mask that the mesh misses (hair volume,
+        a silhouette the mesh has not reached) at the UV of the nearest covered pixel, so
+        that error draws Gaussians to the surface next to it.
+
+        image, target: (H, W, 3); mask: (H, W); pixels: (P,) int64 flat indices of the
+        covered pixels; uv: (P, 2) the UV each sees (see :func:`accumulate_uv_error`).
+        """
+        accumulate_uv_error(image, target, mask, pixels, uv, self.error, self.count)
 
     def density(self) -> torch.Tensor:
         """(G·G,) normalised error per cell, 0 where never seen."""
@@ -138,7 +147,9 @@ class GaussianSampler:
         """After a step that was applied: charges the frame's error to UV (adaptive) and
         records each Gaussian's screen radius."""
         if self.adaptive:
-            self.accumulator.add(*uv_error_samples(render, frame))
+            self.accumulator.add(
+                render.image, frame.image, frame.mask, render.mesh.pixels, render.mesh.uv
+            )
         if render.gaussians is not None:
             radius = render.gaussians.radii.amax(-1)
             self.max_radius = torch.maximum(self.max_radius, radius)
@@ -207,42 +218,3 @@ class GaussianSampler:
     def load_state(self, saved: dict) -> None:
         self.accumulator.load_state(saved["accumulator"])
         self.max_radius = saved["max_radius"]
-
-
-def uv_error_samples(render: Render, frame) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per-pixel photometric error ‖I − I_gt‖₁ inside the mask, paired with the UV
-    coordinate it is charged to: a covered pixel's own UV; a pixel inside the mask that the
-    mesh misses (hair volume, a silhouette the mesh has not reached) is charged to the
-    nearest covered pixel, so that error draws Gaussians to the surface next to it.
-
-    Returns ``(uv (Q, 2), error (Q,))``.
-    """
-    h, w = frame.mask.shape
-    error = ((render.image.detach() - frame.image).abs().sum(-1) * frame.mask).reshape(-1)
-    pixels = render.mesh.pixels
-    if pixels.numel() == 0:
-        return render.mesh.uv, error[:0]
-    covered = torch.zeros(h * w, dtype=torch.bool)
-    covered[pixels] = True
-    missed = ((frame.mask.reshape(-1) > 0.5) & ~covered).nonzero()[:, 0]
-    if missed.numel() == 0:
-        return render.mesh.uv, error[pixels]
-    nearest = nearest_pixel(covered.reshape(h, w))[missed]
-    slot = torch.empty(h * w, dtype=torch.int64)
-    slot[pixels] = torch.arange(pixels.numel())
-    uv = torch.cat([render.mesh.uv, render.mesh.uv[slot[nearest]]])
-    return uv, torch.cat([error[pixels], error[missed]])
-
-
-def nearest_pixel(covered: torch.Tensor) -> torch.Tensor:
-    """(H·W,) int64: for every pixel, the flat index of the nearest ``covered`` pixel
-    (itself when covered); needs at least one covered pixel."""
-    import cv2
-
-    free = (~covered).numpy().astype(np.uint8)
-    _, labels = cv2.distanceTransformWithLabels(
-        free, cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_PIXEL
-    )
-    # Labels number the zero (covered) pixels 1, 2, … in scan order.
-    seeds = covered.reshape(-1).nonzero()[:, 0]
-    return seeds[torch.from_numpy(labels.reshape(-1).astype(np.int64)) - 1]

@@ -1,6 +1,7 @@
 """Differentiable CPU kernels: each a private ``torch.autograd.Function`` over a Rust
-forward/backward pair, with a documented public function. Plain-torch references for
-tests live in :mod:`urhead.ops._reference`."""
+forward/backward pair, with a documented public function; and the error-driven sampling's
+per-frame bookkeeping (:mod:`urhead.ops.uv_error`, no gradients). Plain-torch references
+for tests live in :mod:`urhead.ops._reference`."""
 
 from urhead.ops.antialias import antialias, antialias_topology
 from urhead.ops.interpolate import interpolate
@@ -13,6 +14,7 @@ from urhead.ops.shading import sh_shade
 from urhead.ops.splat import SplatOutput, normal_to_quat, rasterize_gaussians
 from urhead.ops.ssim import masked_l1, masked_ssim
 from urhead.ops.texture import TextureGather, texture
+from urhead.ops.uv_error import accumulate_uv_error, nearest_covered_pixel
 
 __all__ = [
     "LbsOutput",
@@ -21,6 +23,7 @@ __all__ = [
     "SplatOutput",
     "TextureGather",
     "UvRasterOutput",
+    "accumulate_uv_error",
     "antialias",
     "antialias_topology",
     "interpolate",
@@ -28,6 +31,7 @@ __all__ = [
     "lift_gaussians_geometry",
     "masked_l1",
     "masked_ssim",
+    "nearest_covered_pixel",
     "normal_to_quat",
     "rasterize",
     "rasterize_gaussians",

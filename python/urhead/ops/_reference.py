@@ -688,3 +688,44 @@ def lift_gaussians_geometry(verts, rotations, face_verts, bary, normals, lift, c
     rays = normalize_clamped(means.detach() - centre)
     view_dirs = normalize_clamped((rays[:, :, None] * frames.detach()).sum(1))
     return means, normal, normal_to_quat(normal), frames.detach(), view_dirs
+
+
+def nearest_covered_pixel(covered):
+    """Reference of :func:`urhead.ops.uv_error.nearest_covered_pixel` — the OpenCV call the
+    sampling made before the kernel (needs at least one covered pixel)."""
+    import cv2
+    import numpy as np
+
+    free = (~covered).numpy().astype(np.uint8)
+    _, labels = cv2.distanceTransformWithLabels(
+        free, cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_PIXEL
+    )
+    # Labels number the zero (covered) pixels 1, 2, … in scan order.
+    seeds = covered.reshape(-1).nonzero()[:, 0]
+    return seeds[torch.from_numpy(labels.reshape(-1).astype(np.int64)) - 1]
+
+
+def accumulate_uv_error(image, target, mask, pixels, uv, error, count):
+    """Reference of :func:`urhead.ops.uv_error.accumulate_uv_error` — the torch and OpenCV
+    code the sampling ran before the kernel: the samples (covered pixels, then missed ones
+    charged to the nearest covered pixel's UV) binned with ``torch.bincount``."""
+    h, w = mask.shape
+    pixel_error = ((image.detach() - target).abs().sum(-1) * mask).reshape(-1)
+    if pixels.numel() == 0:
+        return
+    covered = torch.zeros(h * w, dtype=torch.bool)
+    covered[pixels] = True
+    missed = ((mask.reshape(-1) > 0.5) & ~covered).nonzero()[:, 0]
+    samples_uv, samples_error = uv, pixel_error[pixels]
+    if missed.numel():
+        nearest = nearest_covered_pixel(covered.reshape(h, w))[missed]
+        slot = torch.empty(h * w, dtype=torch.int64)
+        slot[pixels] = torch.arange(pixels.numel())
+        samples_uv = torch.cat([uv, uv[slot[nearest]]])
+        samples_error = torch.cat([samples_error, pixel_error[missed]])
+    g = math.isqrt(error.numel())
+    col = (samples_uv[:, 0] * g).long().clamp(0, g - 1)
+    row = ((1 - samples_uv[:, 1]) * g).long().clamp(0, g - 1)
+    cell = row * g + col
+    error += torch.bincount(cell, samples_error.double(), minlength=g * g)
+    count += torch.bincount(cell, minlength=g * g).double()

@@ -25,6 +25,7 @@ pub mod ssim;
 /// (which the crate's own integration tests and benches enable), never the binding.
 #[cfg(any(test, feature = "testing"))]
 pub mod testing;
+pub mod uv_error;
 
 pub use camera::Camera;
 pub use error::{Error, Result};

@@ -63,14 +63,23 @@ pub fn zeroed<T: ZeroBits>(what: &'static str, len: usize) -> Result<Vec<T>> {
 /// than zero; zeros should come from [`zeroed`].
 pub fn filled<T: Clone>(what: &'static str, len: usize, value: T) -> Result<Vec<T>> {
     let mut buf = Vec::new();
+    refill(&mut buf, what, len, value)?;
+    Ok(buf)
+}
+
+/// Makes `buf` `len` copies of `value`, reusing its memory: a buffer kept across calls
+/// costs no page faults once grown. Grows with `try_reserve_exact`, so `Err(OutOfMemory)`
+/// instead of an abort when the allocator refuses.
+pub fn refill<T: Clone>(buf: &mut Vec<T>, what: &'static str, len: usize, value: T) -> Result<()> {
+    buf.clear();
     buf.try_reserve_exact(len).map_err(|_| Error::OutOfMemory {
         what,
         elements: len,
         bytes: len as u128 * std::mem::size_of::<T>() as u128,
     })?;
     buf.resize(len, value);
-    advise_huge_pages(&buf);
-    Ok(buf)
+    advise_huge_pages(buf);
+    Ok(())
 }
 
 /// Asks the kernel to back the whole 2 MiB pages inside `buf` with huge pages. Only

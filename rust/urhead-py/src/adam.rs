@@ -9,18 +9,9 @@ use urhead_core::adam::{
 };
 use urhead_core::raster::texture_gradient_entries;
 
-use crate::arrays::{array, data};
+use crate::arrays::{array, data, data_mut};
 use crate::errors::{py_err, InvalidArgumentError};
 use crate::pool::with_threads;
-
-fn data_mut<'a, T: numpy::Element>(
-    arr: &'a mut PyReadwriteArrayDyn<'_, T>,
-    arg: &str,
-) -> PyResult<&'a mut [T]> {
-    arr.as_slice_mut().map_err(|_| {
-        InvalidArgumentError::new_err(format!("{arg} must be C-contiguous; call .contiguous() first"))
-    })
-}
 
 /// The values rows of one `(rows, channels)` table had before steps first changed them
 /// since the last `clear()`; `restore(...)` writes them back.

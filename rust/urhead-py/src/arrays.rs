@@ -1,6 +1,9 @@
 //! Borrowing numpy arrays (zero-copy views of CPU torch tensors) and returning results.
 
-use numpy::{Element, IntoPyArray, PyArrayDyn, PyArrayMethods, PyReadonlyArrayDyn, PyUntypedArrayMethods};
+use numpy::{
+    Element, IntoPyArray, PyArrayDyn, PyArrayMethods, PyReadonlyArrayDyn, PyReadwriteArrayDyn,
+    PyUntypedArrayMethods,
+};
 use pyo3::prelude::*;
 
 use crate::errors::{InvalidArgumentError, ShapeError};
@@ -8,6 +11,13 @@ use crate::errors::{InvalidArgumentError, ShapeError};
 /// The contiguous data of `arr`, or an error naming `arg`.
 pub fn data<'a, T: Element>(arr: &'a PyReadonlyArrayDyn<'_, T>, arg: &str) -> PyResult<&'a [T]> {
     arr.as_slice().map_err(|_| {
+        InvalidArgumentError::new_err(format!("{arg} must be C-contiguous; call .contiguous() first"))
+    })
+}
+
+/// The contiguous data of `arr` to write in place, or an error naming `arg`.
+pub fn data_mut<'a, T: Element>(arr: &'a mut PyReadwriteArrayDyn<'_, T>, arg: &str) -> PyResult<&'a mut [T]> {
+    arr.as_slice_mut().map_err(|_| {
         InvalidArgumentError::new_err(format!("{arg} must be C-contiguous; call .contiguous() first"))
     })
 }

@@ -33,6 +33,7 @@ mod sh_texture;
 mod shading;
 mod splat;
 mod ssim;
+mod uv_error;
 
 use pyo3::prelude::*;
 
@@ -51,5 +52,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     sh_texture::register(m)?;
     shading::register(m)?;
     ssim::register(m)?;
+    uv_error::register(m)?;
     Ok(())
 }
