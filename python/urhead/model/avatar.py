@@ -132,9 +132,9 @@ class Render(NamedTuple):
 
 
 class PixelRays:
-    """(H·W, 3) float32 unit world directions of a camera's pixel rays (from the camera
-    centre through each pixel centre), kept for the last camera asked for: a fit renders
-    the same camera over and over."""
+    """(H·W, 3) float32 unit directions of a camera's pixel rays (from the camera centre
+    through each pixel centre) in the camera's axes, kept for the last camera asked for: a
+    fit renders the same camera over and over."""
 
     def __init__(self):
         self._key: str | None = None
@@ -156,8 +156,8 @@ def _pixel_rays(camera: Camera) -> torch.Tensor:
     )
     k = camera.K.double()
     cam = torch.stack([(xs - k[0, 2]) / k[0, 0], (ys - k[1, 2]) / k[1, 1], torch.ones_like(xs)], -1)
-    world = cam.reshape(-1, 3) @ camera.viewmat[:3, :3].double()  # Rᵀ applied to rows
-    return (world / world.norm(dim=-1, keepdim=True)).float().contiguous()
+    cam = cam.reshape(-1, 3)
+    return (cam / cam.norm(dim=-1, keepdim=True)).float().contiguous()
 
 
 @dataclass
@@ -319,11 +319,16 @@ class Avatar:
         pixels = (raster.tri_id.reshape(-1) >= 0).nonzero()[:, 0]
         # At the covered pixels only: no (H, W, C) images, nor their gradients, to index.
         uv = interpolate(t.uv_coords, raster, t.uv_faces, pixels)
-        pixel_rot = interpolate(rotations.reshape(-1, 9), raster, t.faces, pixels)
+        # The skinning rotations in camera axes (per vertex, before interpolating them):
+        # the pixels' normals come out in the camera axes the normal loss compares, with no
+        # per-pixel product, and the view directions from the camera's own rays.
+        view = camera.viewmat[:3, :3]
+        to_camera = torch.einsum("ij,vjk->vik", view, rotations)
+        pixel_rot = interpolate(to_camera.reshape(-1, 9), raster, t.faces, pixels)
         pixel_rot = pixel_rot.reshape(-1, 3, 3)
         rays = self._rays(camera)[pixels]
         rotation = pixel_rot.detach()
-        local = rotate_normalize(rotation, rays, transpose=True)
+        local = rotate_normalize(rotation, rays, transpose=True)  # (V·R)ᵀ·(V·ray) = Rᵀ·ray
         # The colour and the few other maps the pixels need, in one pass over their texels
         # whose backward does not read the maps again.
         extra = self._pixel_maps(want_normals)
@@ -333,15 +338,16 @@ class Avatar:
         rgb = pixel_maps[:, :3]
         if layout.shading:
             first = 3 + layout.shading_maps.start - extra.start
-            rgb = _shading_gain(rgb, pixel_maps[:, first : first + SHADING_FEATURES], rotation)
-        background = torch.cat([self.background, self.background.new_zeros(1)])
-        flat = background.expand(h * w, 4).clone()
-        flat = flat.index_put((pixels,), torch.cat([rgb, rgb.new_ones(rgb.shape[0], 1)], 1))
+            world = torch.einsum("ji,pjk->pik", view, rotation)  # Vᵀ·(V·R)
+            rgb = _shading_gain(rgb, pixel_maps[:, first : first + SHADING_FEATURES], world)
+        # The covered pixels (alpha 1) over the background (alpha 0), written into one
+        # fresh image in place (out of place, index_put copies the 4 MB image again).
+        flat = torch.cat([self.background, self.background.new_zeros(1)]).repeat(h * w, 1)
+        flat.index_put_((pixels,), torch.cat([rgb, rgb.new_ones(rgb.shape[0], 1)], 1))
         shaded = antialias(flat.reshape(h, w, 4), raster, displaced, t.faces, camera, t.topology)
         normals = None
         if want_normals:
-            world = rotate_normalize(pixel_rot, pixel_maps[:, 3:6])
-            normals = world @ camera.viewmat[:3, :3].T
+            normals = rotate_normalize(pixel_rot, pixel_maps[:, 3:6])
         return MeshRender(
             shaded[..., :3],
             shaded[..., 3],
