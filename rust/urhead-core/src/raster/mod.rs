@@ -45,7 +45,7 @@ pub use antialias::{antialias_backward, antialias_forward, AntialiasGrads, Antia
 pub use interpolate::{interpolate_backward, interpolate_forward, InterpolateGrads};
 pub use rasterize::{rasterize_backward, rasterize_forward};
 pub use setup::{GUARD_BAND_PX, SUBPIXEL_BITS};
-pub use sparse::{SparseTexels, TexelEntries};
+pub use sparse::{SparseTexels, TexelEntries, TextureSamples};
 pub use texture::{texture_backward, texture_forward, texture_gradient_entries, TextureGrads};
 pub use topology::edge_topology;
 pub use uv::rasterize_uv;
