@@ -67,7 +67,8 @@ class Watch:
             maps_grad = guard.maps.grad
             if map_samples is not None:  # the maps' gradient as the optimiser builds it
                 built = TextureGather(guard.maps)
-                built.record(*map_samples)
+                for segment in map_samples:
+                    built.record(*segment)
                 maps_grad = built.gradient()
             watch.steps.append((iteration, row, float(loss), maps_grad, guard.frames.grad))
             return step(guard, iteration, row, loss, map_samples)
