@@ -67,7 +67,8 @@ class Watch:
             maps_grad = guard.maps.grad
             if map_samples is not None:  # the maps' gradient as the optimiser builds it
                 built = TextureGather(guard.maps)
-                built.record(*map_samples)
+                for segment in map_samples:
+                    built.record(*segment)
                 maps_grad = built.gradient()
             watch.steps.append((iteration, row, float(loss), maps_grad, guard.frames.grad))
             return step(guard, iteration, row, loss, map_samples)
@@ -217,11 +218,17 @@ def test_case31_a_bad_step_is_rolled_back_to_the_last_good_state(
 
     class PoisonedGather(TextureGather):
         def samples(self):
-            uv, v_out = super().samples()
+            segments = super().samples()
             if poisoned["now"] and poison == "nan_colour":
-                v_out = v_out.clone()
-                v_out[len(v_out) // 2, 0] = float("nan")
-            return uv, v_out
+                at = sum(len(v_out) for _, v_out in segments) // 2  # the middle lookup
+                for i, (uv, v_out) in enumerate(segments):
+                    if at < len(v_out):
+                        v_out = v_out.clone()
+                        v_out[at, 0] = float("nan")
+                        segments[i] = (uv, v_out)
+                        break
+                    at -= len(v_out)
+            return segments
 
     monkeypatch.setattr(trainer_module, "TextureGather", PoisonedGather)
     trainer = Trainer(load_subject(plain), head, replace(FIT, iterations=100), tmp_path)

@@ -210,14 +210,20 @@ def lookups(g, count, channels):
     return uv, v_out
 
 
+SPLITS = [[3000], [0, 3000, 0], [2048, 952], [1, 2047, 0, 1500, 452]]
+
+
 @pytest.mark.parametrize("threads", ["1", "2", "3"])
+@pytest.mark.parametrize("split", SPLITS, ids=str)
 def test_a_step_on_texture_samples_is_the_step_on_their_built_gradient_bit_for_bit(
-    monkeypatch, threads
+    monkeypatch, threads, split
 ):
-    """``texture_samples`` builds each texel's gradient as the update reaches it: the
-    tables, step counts, reports and journal are those of a step on the coalesced gradient
-    ``TextureGather.gradient`` builds from the same lookups (a NaN output gradient in the
-    second step rejects the texels it reaches)."""
+    """``texture_samples`` builds each texel's gradient as the update reaches it from the
+    lookups' segments as recorded (``split``: their lengths — one, several, empty ones, on
+    and off the kernel's 2048-sample chunks): the tables, step counts, reports and journal
+    are those of a step on the coalesced gradient ``TextureGather.gradient`` builds from
+    the same lookups (a NaN output gradient in the second step rejects the texels it
+    reaches)."""
     monkeypatch.setenv("URHEAD_NUM_THREADS", threads)
     g = torch.Generator().manual_seed(5)
     start = torch.randn(40, 56, C, generator=g)
@@ -225,15 +231,17 @@ def test_a_step_on_texture_samples_is_the_step_on_their_built_gradient_bit_for_b
     opts = SparseAdam([built], lr=LR), SparseAdam([sampled], lr=LR)
     journals = RowJournal(40 * 56, C), RowJournal(40 * 56, C)
     for it in range(3):
-        uv, v_out = lookups(g, 3000, C)
+        uv, v_out = lookups(g, sum(split), C)
         if it == 1:
             v_out[100, 2] = float("nan")
-        gather = TextureGather(built)
-        gather.record(uv, v_out)
+        gather, recorded = TextureGather(built), TextureGather(sampled)
+        for segment in zip(uv.split(split), v_out.split(split), strict=True):
+            gather.record(*segment)
+            recorded.record(*segment)
         built.grad = gather.gradient()
         expected = opts[0].step_reported(journals[0])
         built.grad = None
-        report = opts[1].step_reported(journals[1], (uv, v_out))
+        report = opts[1].step_reported(journals[1], recorded.samples())
         assert torch.equal(report.peaks, expected.peaks)
         assert (report.rejected_rows, report.non_finite_rows) == (
             expected.rejected_rows,
@@ -258,14 +266,18 @@ def test_texture_samples_are_checked():
     p = torch.zeros(4, 4, 3)
     uv, v_out = torch.rand(10, 2), torch.ones(10, 3)
     opt = SparseAdam([p], lr=0.1)
-    with pytest.raises(ShapeError, match=r"v_out \(M, 3\)"):
-        opt.step_reported(None, (uv, torch.ones(10, 4)))
+    with pytest.raises(ShapeError, match=r"segment 1 must be uv \(M, 2\) and v_out \(M, 3\)"):
+        opt.step_reported(None, [(uv, v_out), (uv, torch.ones(10, 4))])
+    with pytest.raises(ShapeError, match=r"segment 0 .* got \(10, 2\) and \(9, 3\)"):
+        opt.step_reported(None, [(uv, v_out[:9])])
+    with pytest.raises(InvalidArgumentError, match=r"list of \(uv, v_out\) segments"):
+        opt.step_reported(None, (uv, v_out))  # one pair, not a list of them
     with pytest.raises(ShapeError, match="texture"):
         flat = torch.zeros(16, 3)
-        SparseAdam([flat], lr=0.1).step_reported(None, (uv, v_out))
-    with pytest.raises(DTypeError, match="float32"):
-        opt.step_reported(None, (uv.double(), v_out))
+        SparseAdam([flat], lr=0.1).step_reported(None, [(uv, v_out)])
+    with pytest.raises(DTypeError, match=r"float32.* segment 1"):
+        opt.step_reported(None, [(uv, v_out), (uv.double(), v_out)])
     p.grad = torch.ones(4, 4, 3)
     with pytest.raises(InvalidArgumentError, match="not both"):
-        opt.step_reported(None, (uv, v_out))
+        opt.step_reported(None, [(uv, v_out)])
     assert torch.equal(p, torch.zeros(4, 4, 3))

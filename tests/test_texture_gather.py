@@ -75,3 +75,22 @@ def test_accumulating_gather_fills_the_source_grad_once_per_backward():
     assert torch.allclose(
         leaf.grad.to_dense(), expected.to_dense() + alone.gradient().to_dense(), atol=1e-6
     )
+
+
+def test_samples_are_the_recorded_lookups_never_joined():
+    """One ``(uv, v_out)`` segment a lookup (in the order the backward pass reached them),
+    an empty lookup included: the lookup's own UVs, not a copy, and its output gradient."""
+    tex = torch.rand(9, 11, 3, requires_grad=True)
+    gather = TextureGather(tex)
+    uvs = [torch.rand(n, 2) for n in (30, 0, 12)]
+    outs = [gather.sample(u) for u in uvs]
+    weights = [torch.randn(u.shape[0], 3) for u in uvs]
+    sum((o * w).sum() for o, w in zip(outs, weights, strict=True)).backward()
+    segments = {len(uv): (uv, v_out) for uv, v_out in gather.samples()}
+    assert sorted(segments) == [0, 12, 30]
+    for u, w in zip(uvs, weights, strict=True):
+        uv, v_out = segments[len(u)]
+        assert torch.equal(uv, u) and torch.equal(v_out, w)
+        assert uv.is_contiguous() and v_out.is_contiguous()
+        assert len(u) == 0 or uv.data_ptr() == u.data_ptr()
+    assert gather.samples() is None  # cleared

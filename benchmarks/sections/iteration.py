@@ -137,7 +137,8 @@ def stage_functions(trainer, state):
 def touched_texels(maps: torch.Tensor, samples) -> int:
     """Distinct texels the lookups' gradient touches."""
     grad = TextureGather(maps)
-    grad.record(*samples)
+    for segment in samples:
+        grad.record(*segment)
     return int(grad.gradient()._nnz())
 
 

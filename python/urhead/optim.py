@@ -133,18 +133,19 @@ class SparseAdam(torch.optim.Optimizer):
     def step_reported(
         self,
         journal: RowJournal | None = None,
-        texture_samples: tuple[torch.Tensor, torch.Tensor] | None = None,
+        texture_samples: Sequence[tuple[torch.Tensor, torch.Tensor]] | None = None,
     ) -> StepReport:
         """One step of an optimiser of a single table, saving the rows it changes into
         ``journal`` first (if given), and what it saw: the step's inspection costs no pass
         over the gradient beyond the update's own.
 
         ``texture_samples``: the table is a texture ``(Ht, Wt, C)`` and its gradient is that
-        of bilinear lookups ``(uv (M, 2), v_out (M, C))``
+        of bilinear lookups given as segments ``[(uv (M_i, 2), v_out (M_i, C)), ...]``
         (:meth:`urhead.ops.TextureGather.samples`), used instead of ``.grad`` (which must be
         None): each texel's gradient row is summed as the update reaches it, never stored
-        — the result is bit for bit that of a step on the coalesced gradient of the same
-        lookups, one pass over the touched rows cheaper."""
+        — the result is bit for bit that of a step on the coalesced gradient of the
+        concatenated lookups, one pass over the touched rows cheaper (and the segments are
+        never joined)."""
         [[group, p]] = [(g, p) for g in self.param_groups for p in g["params"]]
         report = self._step_table(group, p, journal, texture_samples)
         if report is None:
@@ -179,9 +180,9 @@ class SparseAdam(torch.optim.Optimizer):
             journal,
         )
         if texture_samples is not None:
-            uv, v_out = _checked_samples(p, *texture_samples)
+            segments = _checked_samples(p, texture_samples)
             found = native("sparse_adam_step_sampled")(
-                *tables, state["steps"].numpy(), uv, v_out, *settings
+                *tables, state["steps"].numpy(), segments, *settings
             )
         else:
             rows, values = rows_and_values(p, p.grad)
@@ -196,16 +197,27 @@ class SparseAdam(torch.optim.Optimizer):
         return StepReport(torch.from_numpy(peaks), rejected, non_finite)
 
 
-def _checked_samples(p: torch.Tensor, uv: torch.Tensor, v_out: torch.Tensor):
-    """``(uv, v_out)`` lookups of texture ``p (Ht, Wt, C)`` as float32 numpy arrays."""
+def _checked_samples(p: torch.Tensor, segments) -> list:
+    """``[(uv, v_out), ...]`` lookups of texture ``p (Ht, Wt, C)`` as float32 numpy arrays."""
     if p.dim() != 3:
         raise ShapeError(f"texture_samples need a texture (Ht, Wt, C), got {tuple(p.shape)}")
     channels = p.shape[-1]
-    if uv.dim() != 2 or uv.shape[1] != 2 or v_out.shape != (uv.shape[0], channels):
-        raise ShapeError(
-            f"texture_samples must be uv (M, 2) and v_out (M, {channels}), got "
-            f"{tuple(uv.shape)} and {tuple(v_out.shape)}"
-        )
-    if uv.dtype != torch.float32 or v_out.dtype != torch.float32:
-        raise DTypeError(f"texture_samples must be float32, got {uv.dtype} and {v_out.dtype}")
-    return uv.detach().contiguous().numpy(), v_out.detach().contiguous().numpy()
+    checked = []
+    for i, segment in enumerate(segments):
+        if not (isinstance(segment, tuple | list) and len(segment) == 2):
+            raise InvalidArgumentError(
+                f"texture_samples must be a list of (uv, v_out) segments, got {type(segment)} "
+                f"at {i}"
+            )
+        uv, v_out = segment
+        if uv.dim() != 2 or uv.shape[1] != 2 or v_out.shape != (uv.shape[0], channels):
+            raise ShapeError(
+                f"texture_samples segment {i} must be uv (M, 2) and v_out (M, {channels}), got "
+                f"{tuple(uv.shape)} and {tuple(v_out.shape)}"
+            )
+        if uv.dtype != torch.float32 or v_out.dtype != torch.float32:
+            raise DTypeError(
+                f"texture_samples must be float32, got {uv.dtype} and {v_out.dtype} in segment {i}"
+            )
+        checked.append((uv.detach().contiguous().numpy(), v_out.detach().contiguous().numpy()))
+    return checked

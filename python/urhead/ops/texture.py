@@ -178,24 +178,26 @@ class TextureGather:
         source = self.source
         source.grad = grad if source.grad is None else source.grad + grad
 
-    def samples(self) -> tuple[torch.Tensor, torch.Tensor] | None:
-        """The recorded lookups as ``(uv (M, 2), v_out (M, C))``, contiguous: the texture
-        gradient before it is built (None when nothing was recorded); clears the record.
-        :meth:`urhead.optim.SparseAdam.step_reported` applies it without building it."""
+    def samples(self) -> list[tuple[torch.Tensor, torch.Tensor]] | None:
+        """The recorded lookups, one ``(uv (M_i, 2), v_out (M_i, C))`` segment each in
+        recording order, contiguous: the texture gradient before it is built (None when
+        nothing was recorded); clears the record.
+        :meth:`urhead.optim.SparseAdam.step_reported` applies it without building it, or
+        joining the segments (at the paper's settings ~100k × 56 floats a step)."""
         if not self._uv:
             return None
-        uv, v_out = torch.cat(self._uv), torch.cat(self._grad)
+        segments = list(zip(self._uv, self._grad, strict=True))
         self._uv.clear()
         self._grad.clear()
-        return uv, v_out
+        return segments
 
     def gradient(self) -> torch.Tensor | None:
         """The recorded lookups' texture gradient as a coalesced sparse COO tensor of
         ``tex.shape`` (None when nothing was recorded); clears the record."""
-        recorded = self.samples()
-        if recorded is None:
+        segments = self.samples()
+        if segments is None:
             return None
-        uv, v_out = recorded
+        uv, v_out = (torch.cat(arrays) for arrays in zip(*segments, strict=True))
         dtype = self.tex.dtype
         return texture_gradient(self.tex, uv, grad_to_numpy("v_out", v_out, dtype))
 

@@ -126,7 +126,7 @@ class StepGuard:
         iteration: int,
         row: int,
         loss: torch.Tensor,
-        map_samples: tuple[torch.Tensor, torch.Tensor] | None = None,
+        map_samples: list[tuple[torch.Tensor, torch.Tensor]] | None = None,
     ) -> bool:
         """Applies the step of ``iteration`` (training frame ``row``, its ``loss``, the
         gradients on the two tables' ``.grad``, or for the maps their lookups

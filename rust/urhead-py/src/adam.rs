@@ -7,7 +7,7 @@ use urhead_core::adam::{
     sparse_adam_step as step, sparse_adam_step_sampled as step_sampled, AdamConfig,
     RowJournal as CoreJournal, SparseAdamState, StepReport,
 };
-use urhead_core::raster::texture_gradient_entries;
+use urhead_core::raster::{texture_gradient_entries, TextureSamples};
 
 use crate::arrays::{array, data, data_mut};
 use crate::errors::{py_err, InvalidArgumentError};
@@ -100,11 +100,12 @@ pub fn sparse_adam_step<'py>(
 }
 
 /// [`sparse_adam_step`] of a texture table `param (Ht, Wt, C)` whose gradient is that of
-/// bilinear lookups at `uv (N, 2)` with output gradient `v_out (N, C)`: built and applied
-/// in one pass, never stored. The same result, bit for bit, as the step on the coalesced
-/// gradient `texture_backward` gives for the same lookups.
+/// bilinear lookups given as `segments`, a list of `(uv (N_i, 2), v_out (N_i, C))` (each
+/// lookup's own arrays, taken in order as if concatenated): built and applied in one pass,
+/// never stored. The same result, bit for bit, as the step on the coalesced gradient
+/// `texture_backward` gives for the concatenated lookups.
 #[pyfunction]
-#[pyo3(signature = (param, exp_avg, exp_avg_sq, steps, uv, v_out, lr, beta1, beta2, eps, num_threads, journal=None))]
+#[pyo3(signature = (param, exp_avg, exp_avg_sq, steps, segments, lr, beta1, beta2, eps, num_threads, journal=None))]
 #[allow(clippy::too_many_arguments)]
 pub fn sparse_adam_step_sampled<'py>(
     py: Python<'py>,
@@ -112,8 +113,7 @@ pub fn sparse_adam_step_sampled<'py>(
     mut exp_avg: PyReadwriteArrayDyn<'_, f32>,
     mut exp_avg_sq: PyReadwriteArrayDyn<'_, f32>,
     mut steps: PyReadwriteArrayDyn<'_, i32>,
-    uv: PyReadonlyArrayDyn<'_, f32>,
-    v_out: PyReadonlyArrayDyn<'_, f32>,
+    segments: Vec<(PyReadonlyArrayDyn<'_, f32>, PyReadonlyArrayDyn<'_, f32>)>,
     lr: PyReadonlyArrayDyn<'_, f32>,
     beta1: f64,
     beta2: f64,
@@ -128,11 +128,19 @@ pub fn sparse_adam_step_sampled<'py>(
         )));
     };
     let mut state = adam_state(&mut param, &mut exp_avg, &mut exp_avg_sq, &mut steps, channels)?;
-    let (uv, v_out) = (data(&uv, "uv")?, data(&v_out, "v_out")?);
+    let segments = segments
+        .iter()
+        .map(|(uv, v_out)| {
+            Ok(TextureSamples {
+                uv: data(uv, "uv")?,
+                v_out: data(v_out, "v_out")?,
+            })
+        })
+        .collect::<PyResult<Vec<_>>>()?;
     let settings = Settings::new(&lr, beta1, beta2, eps, num_threads, journal.as_deref_mut())?;
     settings.run(py, channels, |lr, config, journal| {
-        let texels = texture_gradient_entries(height, width, channels, uv, v_out)?;
-        step_sampled(&mut state, &texels, v_out, lr, config, journal)
+        let texels = texture_gradient_entries(height, width, channels, &segments)?;
+        step_sampled(&mut state, &texels, lr, config, journal)
     })
 }
 

@@ -123,15 +123,14 @@ pub fn sparse_adam_step(
 }
 
 /// One sparse step of a table that is a texture `(Ht, Wt, C)` (rows are texels, row-major),
-/// its gradient given as the unsummed entries of texture lookups' gradient `v_out (N, C)`
+/// its gradient given as the unsummed entries of texture lookups' output gradients
 /// ([`texture_gradient_entries`](crate::raster::texture_gradient_entries)): each texel's
 /// row is summed as the step reaches it, so the `(K, C)` gradient is never stored. The same
 /// result, bit for bit, as [`sparse_adam_step`] on the coalesced gradient
 /// ([`texture_backward`](crate::raster::texture_backward)) of the same lookups.
 pub fn sparse_adam_step_sampled(
     state: &mut SparseAdamState<'_>,
-    texels: &TexelEntries<f32>,
-    v_out: &[f32],
+    texels: &TexelEntries<'_, f32>,
     lr: &[f32],
     config: &AdamConfig,
     journal: Option<&mut RowJournal>,
@@ -145,7 +144,7 @@ pub fn sparse_adam_step_sampled(
         });
     }
     let rows: Vec<i64> = (0..texels.len()).map(|k| texels.texel(k) as i64).collect();
-    step_rows(state, &rows, &SampledRows { texels, v_out }, lr, config, journal)
+    step_rows(state, &rows, texels, lr, config, journal)
 }
 
 /// Where a step's gradient rows come from.
@@ -169,22 +168,17 @@ impl RowGradients for StoredRows<'_> {
     }
 }
 
-/// Texture lookups' output gradient and its entries per texel.
-struct SampledRows<'a> {
-    texels: &'a TexelEntries<f32>,
-    v_out: &'a [f32],
-}
-
-impl RowGradients for SampledRows<'_> {
+/// Texture lookups' output gradients, summed per texel.
+impl RowGradients for TexelEntries<'_, f32> {
     #[inline(always)]
     fn row<'a>(&'a self, k: usize, scratch: &'a mut [f32]) -> &'a [f32] {
-        self.texels.sum_into(k, self.v_out, scratch);
+        self.sum_into(k, scratch);
         scratch
     }
 
     #[inline(always)]
     fn prefetch(&self, k: usize) {
-        self.texels.prefetch(k, self.v_out);
+        TexelEntries::prefetch(self, k); // the inherent method
     }
 }
 
@@ -487,16 +481,23 @@ mod tests {
         }
     }
 
+    /// Lookups split into segments — one, several, empty ones, splits inside and on
+    /// sample-chunk boundaries: the step on their entries is bit for bit the step on the
+    /// coalesced gradient of their concatenation, on 1, 2 and 3 threads.
     #[test]
     fn a_step_on_texture_entries_is_the_step_on_the_built_gradient() {
-        use crate::raster::{texture_backward, texture_gradient_entries};
-        let (h, w, c) = (9, 7, 3);
+        use crate::raster::{texture_backward, texture_gradient_entries, TextureSamples};
+        use crate::testing::{on_threads, Rng};
+        let (h, w, c) = (23, 17, 3);
+        let n = 5000; // ~50 entries a texel, from every segment
         let lr = [0.1, 0.01, 0.001];
-        let uv: Vec<f32> = (0..400).map(|i| ((i * 37 % 101) as f32 / 90.0) - 0.05).collect();
-        let mut v_out: Vec<f32> = (0..200 * c).map(|i| ((i * 13 % 17) as f32 - 8.0) * 0.1).collect();
+        let mut rng = Rng::new(11);
+        let uv: Vec<f32> = rng.vec(2 * n, -0.05, 1.05);
+        let mut v_out: Vec<f32> = rng.vec(n * c, -1.0, 1.0);
         v_out[7 * c + 1] = f32::NAN; // rejects the texels sample 7 reaches
+        v_out[40 * c..41 * c].fill(0.0); // no gradient: no entries
         let tables = state(h * w, c);
-        let (mut built, mut sampled) = (tables.clone(), tables);
+        let mut built = tables.clone();
         let grad = texture_backward(&built.0, h, w, c, &uv, &v_out, true, false)
             .unwrap()
             .v_tex
@@ -504,45 +505,93 @@ mod tests {
         let rows: Vec<i64> = (0..grad.nnz)
             .map(|k| grad.indices[k] * w as i64 + grad.indices[grad.nnz + k])
             .collect();
-        let texels = texture_gradient_entries(h, w, c, &uv, &v_out).unwrap();
-        let mut journals = (RowJournal::new(h * w, c), RowJournal::new(h * w, c));
+        let mut built_journal = RowJournal::new(h * w, c);
         let expected = sparse_adam_step(
             &mut as_state(&mut built, c),
             &rows,
             &grad.values,
             &lr,
             &CONFIG,
-            Some(&mut journals.0),
+            Some(&mut built_journal),
         )
         .unwrap();
-        let report = sparse_adam_step_sampled(
-            &mut as_state(&mut sampled, c),
-            &texels,
-            &v_out,
-            &lr,
-            &CONFIG,
-            Some(&mut journals.1),
-        )
-        .unwrap();
-        assert!(report.rejected_rows > 0);
-        assert_eq!(report, expected);
-        assert_eq!(texels.len(), grad.nnz);
+        assert!(expected.rejected_rows > 0);
         let bits = |t: &[f32]| t.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
-        assert_eq!(bits(&sampled.0), bits(&built.0));
-        assert_eq!(bits(&sampled.1), bits(&built.1));
-        assert_eq!(bits(&sampled.2), bits(&built.2));
-        assert_eq!(sampled.3, built.3);
-        assert_eq!(journals.0.len(), journals.1.len());
+        let splits: [&[usize]; 5] = [
+            &[n],
+            &[0, n, 0],
+            &[2048, n - 2048],
+            &[1, 2047, 0, 2049, n - 4097],
+            &[1700, 1700, 0, n - 3400],
+        ];
+        for lengths in splits {
+            let mut first = 0;
+            let segments: Vec<TextureSamples<f32>> = lengths
+                .iter()
+                .map(|&len| {
+                    let samples = first..first + len;
+                    first += len;
+                    TextureSamples {
+                        uv: &uv[2 * samples.start..2 * samples.end],
+                        v_out: &v_out[c * samples.start..c * samples.end],
+                    }
+                })
+                .collect();
+            for threads in [1, 2, 3] {
+                let mut sampled = tables.clone();
+                let mut journal = RowJournal::new(h * w, c);
+                let (texels, report) = on_threads(threads, || {
+                    let texels = texture_gradient_entries(h, w, c, &segments).unwrap();
+                    let mut st = as_state(&mut sampled, c);
+                    let report = sparse_adam_step_sampled(&mut st, &texels, &lr, &CONFIG, Some(&mut journal));
+                    (texels.len(), report.unwrap())
+                });
+                let case = format!("segments {lengths:?} on {threads} threads");
+                assert_eq!(report, expected, "{case}");
+                assert_eq!(texels, grad.nnz, "{case}");
+                assert_eq!(bits(&sampled.0), bits(&built.0), "{case}");
+                assert_eq!(bits(&sampled.1), bits(&built.1), "{case}");
+                assert_eq!(bits(&sampled.2), bits(&built.2), "{case}");
+                assert_eq!(sampled.3, built.3, "{case}");
+                assert_eq!(format!("{journal:?}"), format!("{built_journal:?}"), "{case}");
+            }
+        }
     }
 
     #[test]
     fn texture_entries_of_another_table_are_refused() {
-        use crate::raster::texture_gradient_entries;
-        let texels = texture_gradient_entries(4, 4, 2, &[0.5f32, 0.5], &[1.0, 1.0]).unwrap();
+        use crate::raster::{texture_gradient_entries, TextureSamples};
+        let segment = TextureSamples {
+            uv: &[0.5f32, 0.5],
+            v_out: &[1.0, 1.0],
+        };
+        let texels = texture_gradient_entries(4, 4, 2, &[segment]).unwrap();
         let mut tables = state(15, 2);
         let mut st = as_state(&mut tables, 2);
-        let err = sparse_adam_step_sampled(&mut st, &texels, &[1.0, 1.0], &[0.1, 0.1], &CONFIG, None);
+        let err = sparse_adam_step_sampled(&mut st, &texels, &[0.1, 0.1], &CONFIG, None);
         assert!(matches!(err, Err(Error::Shape { arg: "texels", .. })));
+    }
+
+    #[test]
+    fn texture_segments_of_mismatched_lengths_are_refused() {
+        use crate::raster::{texture_gradient_entries, TextureSamples};
+        let whole = TextureSamples {
+            uv: &[0.5f32, 0.5, 0.25, 0.25],
+            v_out: &[1.0, 1.0, 2.0, 2.0],
+        };
+        let short = TextureSamples {
+            uv: &[0.5f32, 0.5, 0.25, 0.25],
+            v_out: &[1.0, 1.0],
+        };
+        let odd = TextureSamples {
+            uv: &[0.5f32, 0.5, 0.25],
+            v_out: &[1.0, 1.0],
+        };
+        for bad in [short, odd] {
+            let err = texture_gradient_entries(4, 4, 2, &[whole, bad]).unwrap_err();
+            assert!(matches!(&err, Error::Shape { arg: "segments", .. }), "{err}");
+            assert!(err.to_string().contains("segment 1"), "{err}");
+        }
     }
 
     #[test]

@@ -52,7 +52,7 @@ pub use sh_texture::{
     sh_texture_backward, sh_texture_forward, ShTextureGradInputs, ShTextureGrads, ShTextureInputs,
     ShTextureOutput,
 };
-pub use sparse::{SparseTexels, TexelEntries};
+pub use sparse::{SparseTexels, TexelEntries, TextureSamples};
 pub use texture::{texture_backward, texture_forward, texture_gradient_entries, TextureGrads};
 pub use topology::edge_topology;
 pub use uv::rasterize_uv;

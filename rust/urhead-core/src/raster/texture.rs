@@ -11,7 +11,9 @@
 
 use rayon::prelude::*;
 
-use super::sparse::{sparse_texel_gradient, texel_entries, SparseTexels, TexelEntries};
+use super::sparse::{
+    sparse_texel_gradient, texel_entries, SparseTexels, TexelEntries, TextureSamples, MAX_SAMPLE_CHUNKS,
+};
 use super::taps::{
     bilinear_taps, gradient_taps, prefetch_taps, uv_gradient, uv_gradient_ahead, Taps, TexShape,
     PREFETCH_DISTANCE, SAMPLE_CHUNK,
@@ -127,29 +129,53 @@ pub fn texture_forward<T: Real>(
     Ok(out)
 }
 
-/// The texture gradient of `v_out (N, C)` at `uv (N, 2)` for a `(Ht, Wt, C)` texture as
-/// its unsummed entries ([`TexelEntries`]): the same texels and sums [`texture_backward`]
-/// lists, for a consumer that sums each texel's row as it uses it.
-pub fn texture_gradient_entries<T: Real>(
+/// The texture gradient of lookups of a `(Ht, Wt, C)` texture, given as `segments` (each
+/// `uv (N_i, 2)`, `v_out (N_i, C)`), as its unsummed entries ([`TexelEntries`]): the same
+/// texels and sums [`texture_backward`] lists for the segments' concatenation, for a
+/// consumer that sums each texel's row as it uses it.
+pub fn texture_gradient_entries<'a, T: Real>(
     height: usize,
     width: usize,
     channels: usize,
-    uv: &[T],
-    v_out: &[T],
-) -> Result<TexelEntries<T>> {
+    segments: &[TextureSamples<'a, T>],
+) -> Result<TexelEntries<'a, T>> {
     let shape = TexShape {
         height,
         width,
         channels,
     };
-    let n = validate_layout(&shape, uv)?;
-    check_len(
-        "v_out",
-        v_out,
-        n * channels,
-        &format!("(N, C) = ({n}, {channels})"),
-    )?;
-    Ok(texel_entries(&shape, &[], uv, v_out, None)) // the texture is read for v_uv only
+    validate_layout::<T>(&shape, &[])?; // the texture's sides
+    let mut chunks = 0;
+    for (i, segment) in segments.iter().enumerate() {
+        let n = segment.uv.len() / 2;
+        if segment.uv.len() % 2 != 0 || segment.v_out.len() != n * channels {
+            return Err(Error::Shape {
+                arg: "segments",
+                expected: format!("uv (N, 2) and v_out (N, {channels}) in each segment"),
+                got: format!(
+                    "{} uv and {} v_out elements in segment {i}",
+                    segment.uv.len(),
+                    segment.v_out.len()
+                ),
+            });
+        }
+        chunks += n.div_ceil(SAMPLE_CHUNK);
+    }
+    check_sample_chunks(chunks)?;
+    Ok(texel_entries(&shape, &[], segments, None)) // the texture is read for v_uv only
+}
+
+/// The texture gradient's entries number samples in u32, chunk by chunk (a segment's
+/// last chunk may be short).
+fn check_sample_chunks(chunks: usize) -> Result<()> {
+    if chunks > MAX_SAMPLE_CHUNKS {
+        return Err(Error::TooLarge {
+            what: "texture samples, numbered in u32 by chunks within a segment",
+            requested: (chunks * SAMPLE_CHUNK) as u128,
+            limit: (MAX_SAMPLE_CHUNKS * SAMPLE_CHUNK) as u128,
+        });
+    }
+    Ok(())
 }
 
 /// Gradients of [`texture_backward`]; a field is `Some` exactly when it was asked for.
@@ -182,6 +208,7 @@ pub fn texture_backward<T: Real>(
     check_len("v_out", v_out, n * c, &format!("(N, C) = ({n}, {c})"))?;
     let mut v_uv = need_uv.then(|| zeroed("uv gradient (N, 2)", 2 * n)).transpose()?;
     let v_tex = if need_tex {
+        check_sample_chunks(n.div_ceil(SAMPLE_CHUNK))?;
         Some(sparse_texel_gradient(
             &shape,
             tex,
