@@ -69,9 +69,31 @@ def test_laplacian_of_a_flat_regular_grid_is_zero_inside():
             i = r * n + c
             faces += [[i, i + 1, i + n + 1], [i, i + n + 1, i + n]]
     lap = uniform_laplacian(torch.tensor(faces), n * n)
-    deltas = (lap @ verts).reshape(n, n, 3)
+    deltas = torch.from_numpy(lap @ verts.numpy()).reshape(n, n, 3)
     # the two-diagonal-free interior vertex has 6 symmetric neighbours: δ = 0
     assert deltas[1:-1, 1:-1].abs().max() < 1e-6
     bumped = verts.clone()
     bumped[2 * n + 2, 2] = 1.0
     assert laplacian_loss(bumped, lap) > laplacian_loss(verts, lap) + 1e-3
+
+
+def test_laplacian_loss_matches_the_dense_torch_expression_and_its_gradient():
+    """Value and gradient against (1/V)·Σ‖L·v‖² with L dense in float64, for one mesh and
+    a batch of two."""
+    from urhead.head import procedural_head
+
+    head = procedural_head(0)
+    lap = uniform_laplacian(torch.tensor(head.faces), head.num_vertices)
+    dense = torch.from_numpy(lap.toarray()).double()
+    g = torch.Generator().manual_seed(0)
+    for shape in ((head.num_vertices, 3), (2, head.num_vertices, 3)):
+        verts = torch.randn(shape, generator=g)
+        ours_v = verts.clone().requires_grad_(True)
+        ours = laplacian_loss(ours_v, lap)
+        ours.backward()
+        ref_v = verts.double().requires_grad_(True)
+        ref = ((dense @ ref_v) ** 2).sum(-1).mean()
+        ref.backward()
+        assert ours.dtype == torch.float32 and ours_v.grad.shape == shape
+        assert abs(ours.item() - ref.item()) <= 1e-6 * ref.item()
+        assert torch.allclose(ours_v.grad.double(), ref_v.grad, rtol=1e-5, atol=1e-9)

@@ -8,9 +8,10 @@ import scipy.sparse as sp
 import torch
 
 
-def uniform_laplacian(faces: torch.Tensor, num_verts: int) -> torch.Tensor:
-    """Sparse (V, V) operator L with (L v)_i = v_i − mean of i's edge neighbours.
-    Isolated vertices get a zero row."""
+def uniform_laplacian(faces: torch.Tensor, num_verts: int) -> sp.csr_matrix:
+    """Sparse (V, V) float32 operator L with (L v)_i = v_i − mean of i's edge neighbours
+    (a scipy CSR matrix: :func:`urhead.train.objective.laplacian_loss` applies it and its
+    transpose in one pass each). Isolated vertices get a zero row."""
     f = faces.long()
     edges = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
     edges = torch.cat([edges, edges.flip(1)]).unique(dim=0)
@@ -19,9 +20,8 @@ def uniform_laplacian(faces: torch.Tensor, num_verts: int) -> torch.Tensor:
     cols = torch.cat([edges[:, 1], torch.arange(num_verts)])
     has_neighbours = (degree > 0).to(torch.float32)
     values = torch.cat([-1 / degree[edges[:, 0]], has_neighbours])
-    return torch.sparse_coo_tensor(
-        torch.stack([rows, cols]), values, (num_verts, num_verts), check_invariants=True
-    ).coalesce()
+    shape = (num_verts, num_verts)
+    return sp.csr_matrix((values.numpy(), (rows.numpy(), cols.numpy())), shape=shape)
 
 
 def vertex_normals(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:

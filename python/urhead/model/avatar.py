@@ -326,7 +326,7 @@ class Avatar:
         to_camera = torch.einsum("ij,vjk->vik", view, rotations)
         pixel_rot = interpolate(to_camera.reshape(-1, 9), raster, t.faces, pixels)
         pixel_rot = pixel_rot.reshape(-1, 3, 3)
-        rays = self._rays(camera)[pixels]
+        rays = self._rays(camera).index_select(0, pixels)  # ~3× faster than [pixels]
         rotation = pixel_rot.detach()
         local = rotate_normalize(rotation, rays, transpose=True)  # (V·R)ᵀ·(V·ray) = Rᵀ·ray
         # The colour and the few other maps the pixels need, in one pass over their texels
@@ -383,8 +383,9 @@ class Avatar:
         return GaussianLift(
             means=geometry.means,
             quats=geometry.quats,
-            scales=samples.scale.exp(),
-            opacities=torch.sigmoid(samples.opacity),
+            # Contiguous first: on the (N, channels)-strided columns exp is ~8× slower.
+            scales=samples.scale.contiguous().exp(),
+            opacities=torch.sigmoid(samples.opacity.contiguous()),
             colors=self._sh_color(rows, geometry.view_dirs, geometry.frames, sh_degree),
             sh=samples.color.reshape(-1, layout.sh_coeffs, 3),
             frames=geometry.frames,
