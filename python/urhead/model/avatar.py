@@ -25,6 +25,7 @@ from urhead.model.map_layout import SHADING_FEATURES, MapLayout
 from urhead.ops import (
     antialias,
     antialias_topology,
+    composite,
     interpolate,
     lbs,
     lift_gaussians_geometry,
@@ -91,6 +92,8 @@ class MeshRender(NamedTuple):
     """(V, 3) displacement of each vertex, v̂ − v."""
     tri_id: torch.Tensor
     """(H, W) int32 triangle seen at each pixel centre, −1 where empty."""
+    rgba: torch.Tensor
+    """(H, W, 4) the antialiased colour and coverage ``image`` and ``alpha`` view."""
 
 
 class GaussianLift(NamedTuple):
@@ -267,7 +270,7 @@ class Avatar:
             return Render(mesh.image, mesh, None)
         lift = self.lift_gaussians(verts, rotations, camera, gather, sh_degree=sh_degree)
         splats = self.splat(lift, camera, mesh.depth if occlusion_aware else None)
-        image = splats.image + splats.transmittance[..., None] * mesh.image
+        image = composite(splats.image, splats.transmittance, mesh.rgba)
         return Render(image, mesh, splats)
 
     # The stages of :meth:`render`, public so benchmarks and exporters can run them alone.
@@ -358,6 +361,7 @@ class Avatar:
             displaced,
             offsets,
             raster.tri_id.reshape(h, w),
+            shaded,
         )
 
     def lift_gaussians(self, verts, rotations, camera, gather=None, sh_degree=None) -> GaussianLift:

@@ -4,6 +4,7 @@ per-frame bookkeeping (:mod:`urhead.ops.uv_error`, no gradients). Plain-torch re
 for tests live in :mod:`urhead.ops._reference`."""
 
 from urhead.ops.antialias import antialias, antialias_topology
+from urhead.ops.composite import composite
 from urhead.ops.interpolate import interpolate
 from urhead.ops.lbs import LbsOutput, lbs
 from urhead.ops.lift import LiftOutput, lift_gaussians_geometry
@@ -26,6 +27,7 @@ __all__ = [
     "accumulate_uv_error",
     "antialias",
     "antialias_topology",
+    "composite",
     "interpolate",
     "lbs",
     "lift_gaussians_geometry",

@@ -660,6 +660,11 @@ def sh_texture(tex, uv, dirs, degree, extra=None):
     return torch.cat(parts, 1)
 
 
+def composite(front, transmittance, back):
+    """Reference of :func:`urhead.ops.composite`."""
+    return front + transmittance[..., None] * back[..., :3]
+
+
 def normalize_clamped(v: torch.Tensor) -> torch.Tensor:
     """(..., 3) vectors over ``max(|v|, 1e-12)``: zero stays zero."""
     return v / v.norm(dim=-1, keepdim=True).clamp_min(1e-12)

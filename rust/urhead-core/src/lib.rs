@@ -7,6 +7,7 @@
 
 pub mod adam;
 pub mod camera;
+pub mod composite;
 pub mod error;
 pub mod lbs;
 pub mod lift;

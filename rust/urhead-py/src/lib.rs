@@ -21,6 +21,7 @@
 mod adam;
 mod arrays;
 mod camera;
+mod composite;
 mod errors;
 mod lbs;
 mod lift;
@@ -41,6 +42,7 @@ use pyo3::prelude::*;
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     errors::register(m)?;
     camera::register(m)?;
+    composite::register(m)?;
     adam::register(m)?;
     lbs::register(m)?;
     lift::register(m)?;
