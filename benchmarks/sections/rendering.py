@@ -15,6 +15,7 @@ import torch
 
 from sections.common import ms, save, table
 from sections.scene import paper_scene
+from urhead.ops import composite
 
 TITLE = "Rendering FPS at 512² (forward only)"
 STAGES = ("skinning", "displacement", "mesh branch", "Gaussian lift", "splatting", "composite")
@@ -37,7 +38,7 @@ def frame(avatar, params, camera, stamps: list | None = None) -> torch.Tensor:
     mark("Gaussian lift")
     splat = avatar.splat(lift, camera, mesh.depth)
     mark("splatting")
-    image = splat.image + splat.transmittance[..., None] * mesh.image
+    image = composite(splat.image, splat.transmittance, mesh.rgba)  # as Avatar.render
     mark("composite")
     return image
 
