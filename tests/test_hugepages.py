@@ -28,16 +28,44 @@ def thp_mode() -> str | None:
 
 def huge_page_kib(t: torch.Tensor) -> int:
     """AnonHugePages (KiB) of the mappings overlapping ``t``'s storage."""
+    return sum(
+        int(line.split()[1])
+        for _, lines in _mappings_of(t)
+        for line in lines
+        if line.startswith("AnonHugePages:")
+    )
+
+
+def advised_fraction(t: torch.Tensor) -> float:
+    """The fraction of ``t``'s storage in mappings that carry ``MADV_HUGEPAGE`` (the ``hg``
+    flag): the part urhead controls (the aligned interior of the table; its unaligned ends
+    cannot be). How much of that the kernel then backs with 2 MiB pages is best effort: on a
+    loaded, fragmented machine a 64 MiB table once got 26 MiB."""
+    advised = sum(
+        overlap
+        for overlap, lines in _mappings_of(t)
+        if any(line.startswith("VmFlags:") and " hg" in line for line in lines)
+    )
+    return advised / (t.numel() * t.element_size())
+
+
+def _mappings_of(t: torch.Tensor) -> list[tuple[int, list[str]]]:
+    """``(bytes of t's storage inside, smaps lines)`` of each mapping overlapping it."""
     lo = t.data_ptr()
     hi = lo + t.numel() * t.element_size()
-    overlaps, total = False, 0
+    found: list[tuple[int, list[str]]] = []
+    lines: list[str] | None = None
     for line in Path("/proc/self/smaps").read_text().splitlines():
         span = re.match(r"^([0-9a-f]+)-([0-9a-f]+) ", line)
         if span:
-            overlaps = int(span[1], 16) < hi and int(span[2], 16) > lo
-        elif overlaps and line.startswith("AnonHugePages:"):
-            total += int(line.split()[1])
-    return total
+            start, end = int(span[1], 16), int(span[2], 16)
+            lines = None
+            if start < hi and end > lo:
+                lines = []
+                found.append((min(end, hi) - max(start, lo), lines))
+        elif lines is not None:
+            lines.append(line)
+    return found
 
 
 def test_zeros_are_zeros_of_the_asked_shape_and_dtype():
@@ -70,7 +98,8 @@ def test_a_large_table_is_backed_by_huge_pages():
     # memory advised earlier in the process keeps its advice, so that is not asserted.)
     ours = hugepages.zeros(LARGE)
     ours.fill_(1.0)  # first touch: the kernel backs the advised range
-    assert huge_page_kib(ours) >= 32 << 10  # at least half the table on 2 MiB pages
+    assert advised_fraction(ours) >= 0.9
+    assert huge_page_kib(ours) > 0  # some of it on 2 MiB pages (all of it on an idle machine)
 
 
 def test_sparse_adam_state_and_restored_state_are_huge_page_tables():
@@ -84,7 +113,8 @@ def test_sparse_adam_state_and_restored_state_are_huge_page_tables():
         assert state["steps"].dtype == torch.int32
         if sys.platform == "linux" and thp_mode() in ("always", "madvise"):
             for name in ("exp_avg", "exp_avg_sq"):
-                assert huge_page_kib(state[name]) >= 32 << 10, name
+                assert advised_fraction(state[name]) >= 0.9, name
+                assert huge_page_kib(state[name]) > 0, name
     for name in ("exp_avg", "exp_avg_sq", "steps"):
         a, b = opt.state[param][name], restored.state[param][name]
         assert torch.equal(a, b) and a.data_ptr() != b.data_ptr()
