@@ -135,6 +135,20 @@ mod tests {
     use super::*;
     use crate::testing::{on_threads, Rng};
 
+    fn inputs<'a>(
+        front: &'a [f64],
+        transmittance: &'a [f64],
+        back: &'a [f64],
+        s: usize,
+    ) -> CompositeInputs<'a, f64> {
+        CompositeInputs {
+            front,
+            transmittance,
+            back,
+            back_channels: s,
+        }
+    }
+
     fn case(p: usize, s: usize) -> (Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>) {
         let mut rng = Rng::new(1);
         (
@@ -149,12 +163,7 @@ mod tests {
     fn forward_and_adjoint_are_the_formula() {
         let (p, s) = (10_000, 4);
         let (front, t, back, g) = case(p, s);
-        let inputs = CompositeInputs {
-            front: &front,
-            transmittance: &t,
-            back: &back,
-            back_channels: s,
-        };
+        let inputs = inputs(&front, &t, &back, s);
         let out = composite_forward(&inputs).unwrap();
         let grads = composite_backward(&inputs, &g, true, true).unwrap();
         let (v_t, v_back) = (grads.v_transmittance.unwrap(), grads.v_back.unwrap());
@@ -176,12 +185,7 @@ mod tests {
     fn same_bits_for_any_thread_count() {
         let (p, s) = (20_000, 3);
         let (front, t, back, g) = case(p, s);
-        let inputs = CompositeInputs {
-            front: &front,
-            transmittance: &t,
-            back: &back,
-            back_channels: s,
-        };
+        let inputs = inputs(&front, &t, &back, s);
         let run = || {
             let out = composite_forward(&inputs).unwrap();
             let grads = composite_backward(&inputs, &g, true, true).unwrap();
@@ -196,12 +200,7 @@ mod tests {
     #[test]
     fn bad_lengths_are_named() {
         let (front, t, back, g) = case(5, 4);
-        let inputs = CompositeInputs {
-            front: &front,
-            transmittance: &t,
-            back: &back,
-            back_channels: 2,
-        };
+        let inputs = inputs(&front, &t, &back, 2);
         assert!(composite_forward(&inputs)
             .unwrap_err()
             .to_string()

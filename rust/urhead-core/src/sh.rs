@@ -99,16 +99,55 @@ pub fn sh_basis<T: Real>(degree: usize, d: [T; 3], with_grad: bool) -> ([T; 16],
     (b, g)
 }
 
+/// Direction `i` of `(N, 3)` directions.
+#[inline(always)]
+pub fn direction<T: Real>(dirs: &[T], i: usize) -> [T; 3] {
+    [dirs[3 * i], dirs[3 * i + 1], dirs[3 * i + 2]]
+}
+
+/// `start + Σ_k b_k·coeffs[3k + c]` per colour `c`, over the `coeffs.len() / 3`
+/// coefficients given, in one fixed order: every SH colour in the crate is summed here, so a
+/// fused op and the separate ones agree bit for bit.
+#[inline(always)]
+pub fn sh_sum<T: Real>(b: &[T; 16], coeffs: &[T], start: T) -> [T; 3] {
+    let mut rgb = [start; 3];
+    for (k, bk) in b.iter().enumerate().take(coeffs.len() / 3) {
+        for (ch, v) in rgb.iter_mut().enumerate() {
+            *v += *bk * coeffs[k * 3 + ch];
+        }
+    }
+    rgb
+}
+
+/// `v_rgb` where the pre-clamp colour `raw` passed the clamp at 0 (`raw ≥ 0`), 0 elsewhere
+/// (NaN included): the gradient the clamp lets through.
+#[inline(always)]
+pub fn unclamped<T: Real>(raw: [T; 3], v_rgb: [T; 3]) -> [T; 3] {
+    [0, 1, 2].map(|ch| {
+        if raw[ch] >= T::zero() {
+            v_rgb[ch]
+        } else {
+            T::zero()
+        }
+    })
+}
+
+/// `dst[3k + c] = b_k·v[c]` for the `dst.len() / 3` coefficients: the coefficients'
+/// gradient of [`sh_sum`] given the colour's `v`.
+#[inline(always)]
+pub fn sh_sum_adjoint<T: Real>(b: &[T; 16], v: [T; 3], dst: &mut [T]) {
+    for (k, row) in dst.chunks_exact_mut(3).enumerate() {
+        for ch in 0..3 {
+            row[ch] = b[k] * v[ch];
+        }
+    }
+}
+
 /// RGB = max(Σ_k b_k(dir)·coeffs[k] + 0.5, 0); `coeffs` is `(K, 3)` with K ≥ (degree+1)².
 #[inline]
 pub fn sh_to_rgb<T: Real>(degree: usize, dir: [T; 3], coeffs: &[T]) -> [T; 3] {
     let (b, _) = sh_basis(degree, dir, false);
-    let mut rgb = [T::c(0.5); 3];
-    for k in 0..num_sh_coeffs(degree) {
-        for ch in 0..3 {
-            rgb[ch] += b[k] * coeffs[k * 3 + ch];
-        }
-    }
+    let rgb = sh_sum(&b, &coeffs[..3 * num_sh_coeffs(degree)], T::c(0.5));
     rgb.map(|v| if v >= T::zero() { v } else { T::zero() })
 }
 
@@ -124,19 +163,7 @@ pub fn sh_to_rgb_backward<T: Real>(
 ) -> [T; 3] {
     let (b, g) = sh_basis(degree, dir, true);
     let n = num_sh_coeffs(degree);
-    let mut raw = [T::c(0.5); 3];
-    for k in 0..n {
-        for ch in 0..3 {
-            raw[ch] += b[k] * coeffs[k * 3 + ch];
-        }
-    }
-    let v = [0, 1, 2].map(|ch| {
-        if raw[ch] >= T::zero() {
-            v_rgb[ch]
-        } else {
-            T::zero()
-        }
-    });
+    let v = unclamped(sh_sum(&b, &coeffs[..3 * n], T::c(0.5)), v_rgb);
     if let Some(vc) = v_coeffs {
         for k in 0..n {
             for ch in 0..3 {

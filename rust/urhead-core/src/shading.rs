@@ -10,7 +10,7 @@
 use rayon::prelude::*;
 
 use crate::error::{check_finite, check_len, Error, Result};
-use crate::sh::{num_sh_coeffs, sh_basis};
+use crate::sh::{direction, num_sh_coeffs, sh_basis, sh_sum, sh_sum_adjoint, unclamped};
 use crate::Real;
 
 /// Samples per rayon task: enough work to amortise the task, fixed so any thread count
@@ -54,18 +54,16 @@ impl<T: Real> ShadingInputs<'_, T> {
     }
 
     fn raw(&self, i: usize, b: &[T; 16]) -> [T; 3] {
-        let row = &self.coeffs[i * self.stride..];
-        let mut rgb = [T::c(0.5); 3];
-        for (k, bk) in b.iter().enumerate().take(num_sh_coeffs(self.degree)) {
-            for (ch, v) in rgb.iter_mut().enumerate() {
-                *v += *bk * row[k * 3 + ch];
-            }
-        }
-        rgb
+        let width = 3 * num_sh_coeffs(self.degree);
+        sh_sum(
+            b,
+            &self.coeffs[i * self.stride..i * self.stride + width],
+            T::c(0.5),
+        )
     }
 
     fn dir(&self, i: usize) -> [T; 3] {
-        [self.dirs[3 * i], self.dirs[3 * i + 1], self.dirs[3 * i + 2]]
+        direction(self.dirs, i)
     }
 }
 
@@ -102,19 +100,8 @@ pub fn shade_backward<T: Real>(inputs: &ShadingInputs<'_, T>, v_rgb: &[T]) -> Re
             for (j, row) in block.chunks_exact_mut(stride).enumerate() {
                 let i = c * CHUNK + j;
                 let (b, _) = sh_basis(inputs.degree, inputs.dir(i), false);
-                let raw = inputs.raw(i, &b);
-                let v = [0, 1, 2].map(|ch| {
-                    if raw[ch] >= T::zero() {
-                        v_rgb[3 * i + ch]
-                    } else {
-                        T::zero()
-                    }
-                });
-                for k in 0..n {
-                    for ch in 0..3 {
-                        row[k * 3 + ch] = b[k] * v[ch];
-                    }
-                }
+                let v = unclamped(inputs.raw(i, &b), [0, 1, 2].map(|ch| v_rgb[3 * i + ch]));
+                sh_sum_adjoint(&b, v, &mut row[..3 * n]);
             }
         });
     Ok(v_coeffs)

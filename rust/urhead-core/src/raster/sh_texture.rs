@@ -33,7 +33,7 @@ use super::texture::{blend, validate};
 use crate::error::{check_finite, check_len, Error, Result};
 use crate::memory::zeroed;
 use crate::parallel::optional_chunks;
-use crate::sh::{num_sh_coeffs, sh_basis};
+use crate::sh::{direction, num_sh_coeffs, sh_basis, sh_sum, sh_sum_adjoint, unclamped};
 use crate::Real;
 
 /// What the forward reads.
@@ -122,24 +122,6 @@ fn check_channels(degree: usize, channels: usize, extra: &Range<usize>) -> Resul
     Ok(colour)
 }
 
-/// Direction `s` of `(N, 3)` directions.
-#[inline(always)]
-fn dir<T: Real>(dirs: &[T], s: usize) -> [T; 3] {
-    [dirs[3 * s], dirs[3 * s + 1], dirs[3 * s + 2]]
-}
-
-/// `0.5 + Σ_k b_k·row[3k + c]`, in the order [`crate::shading`] sums.
-#[inline(always)]
-fn sh_sum<T: Real>(b: &[T; 16], colour: &[T], start: T) -> [T; 3] {
-    let mut rgb = [start; 3];
-    for (k, bk) in b.iter().enumerate().take(colour.len() / 3) {
-        for (ch, v) in rgb.iter_mut().enumerate() {
-            *v += *bk * colour[k * 3 + ch];
-        }
-    }
-    rgb
-}
-
 /// The interpolated row's derivatives along the texel axes x and y (per unit texel).
 #[inline(always)]
 fn texel_slopes<T: Real>(d_fx: &mut [T], d_fy: &mut [T], rows: [&[T]; 4], t: &Taps<T>) {
@@ -223,7 +205,7 @@ pub fn sh_texture_forward<T: Real>(
                         }
                     }
                 }
-                let (b, _) = sh_basis(inputs.degree, dir(inputs.dirs, first + i), false);
+                let (b, _) = sh_basis(inputs.degree, direction(inputs.dirs, first + i), false);
                 let rgb = sh_sum(&b, &row[..colour], T::c(0.5));
                 for ch in 0..3 {
                     // NaN-safe clamp, as the shading op: a NaN coefficient gives NaN.
@@ -315,15 +297,11 @@ pub fn sh_texture_backward<T: Real>(
                 let s = first + i;
                 let v = &g.v_values[width * s..width * (s + 1)];
                 let raw = &g.raw_rgb[3 * s..3 * s + 3];
-                let v_rgb = [0, 1, 2].map(|ch| if raw[ch] >= T::zero() { v[ch] } else { T::zero() });
+                let v_rgb = unclamped([raw[0], raw[1], raw[2]], [v[0], v[1], v[2]]);
                 if let Some(rows) = rows.as_deref_mut() {
                     let row = &mut rows[c * i..c * (i + 1)];
-                    let (b, _) = sh_basis(g.degree, dir(g.dirs, s), false);
-                    for k in 0..colour / 3 {
-                        for ch in 0..3 {
-                            row[k * 3 + ch] = b[k] * v_rgb[ch];
-                        }
-                    }
+                    let (b, _) = sh_basis(g.degree, direction(g.dirs, s), false);
+                    sh_sum_adjoint(&b, v_rgb, &mut row[..colour]);
                     row[extra.clone()].copy_from_slice(&v[3..]);
                 }
                 if let (Some(v_uv), Some(slopes)) = (v_uv.as_deref_mut(), g.slopes) {
