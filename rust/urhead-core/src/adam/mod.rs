@@ -340,6 +340,7 @@ fn step_chunk<G: RowGradients>(
         saved_rows: 0,
     };
     let mut scratch = vec![0f32; c];
+    let mut corrections = BiasCorrections::new(config);
     for (i, &row) in chunk.iter().enumerate() {
         if let Some(&ahead) = chunk.get(i + PREFETCH_ROWS) {
             let r = ahead as usize - base;
@@ -379,7 +380,7 @@ fn step_chunk<G: RowGradients>(
         s[local] = t;
         let (p, m, v) = (&mut p[rows.clone()], &mut m[rows.clone()], &mut v[rows]);
         let finite = if small {
-            update_row_f32(p, m, v, g, lr, t, config)
+            update_row_f32(p, m, v, g, lr, corrections.at(t), config)
         } else {
             update_row_f64(p, m, v, g, lr, t, config);
             p.iter().chain(m.iter()).chain(v.iter()).all(|x| x.is_finite())
@@ -394,21 +395,57 @@ fn step_chunk<G: RowGradients>(
 /// Gradients up to this magnitude square safely in f32 (g² ≤ 1e36 < f32::MAX).
 const F32_SAFE_GRAD: f32 = 1e18;
 
-/// The common case, in f32 (vectorises; bias corrections precomputed per row).
+/// `1 / (1 − β1^t)` and `1 / √(1 − β2^t)` in f32 for a row's step count `t`, kept in a
+/// small direct-mapped table: the rows of a chunk were first touched in a handful of
+/// steps, so few distinct counts occur and the two `powi` per row (~1.6 % of a fit
+/// step's CPU time when made per row) are made once per count.
+struct BiasCorrections<'a> {
+    config: &'a AdamConfig,
+    slots: [(i32, (f32, f32)); CORRECTION_SLOTS],
+}
+
+const CORRECTION_SLOTS: usize = 64;
+
+impl<'a> BiasCorrections<'a> {
+    fn new(config: &'a AdamConfig) -> Self {
+        Self {
+            config,
+            // No row steps with t = 0 (the first step has t = 1): every slot starts empty.
+            slots: [(0, (f32::NAN, f32::NAN)); CORRECTION_SLOTS],
+        }
+    }
+
+    #[inline(always)]
+    fn at(&mut self, t: i32) -> (f32, f32) {
+        let slot = &mut self.slots[t as usize % CORRECTION_SLOTS];
+        if slot.0 != t {
+            let (b1, b2) = (self.config.beta1, self.config.beta2);
+            *slot = (
+                t,
+                (
+                    (1.0 / (1.0 - b1.powi(t))) as f32,
+                    (1.0 / (1.0 - b2.powi(t)).sqrt()) as f32,
+                ),
+            );
+        }
+        slot.1
+    }
+}
+
+/// The common case, in f32 (vectorises), with the row's inverse bias corrections
+/// (see [`BiasCorrections`]).
 fn update_row_f32(
     p: &mut [f32],
     m: &mut [f32],
     v: &mut [f32],
     g: &[f32],
     lr: &[f32],
-    t: i32,
+    (inv_correction1, inv_sqrt_correction2): (f32, f32),
     config: &AdamConfig,
 ) -> bool {
     // 1 − β in f64 first: 1 − 0.999f32 is off by 1.3e-5 relative in f32.
     let (b1, b2) = (config.beta1 as f32, config.beta2 as f32);
     let (one_minus_b1, one_minus_b2) = ((1.0 - config.beta1) as f32, (1.0 - config.beta2) as f32);
-    let inv_correction1 = (1.0 / (1.0 - config.beta1.powi(t))) as f32;
-    let inv_sqrt_correction2 = (1.0 / (1.0 - config.beta2.powi(t)).sqrt()) as f32;
     let (eps, bound) = (config.eps as f32, config.step_bound() as f32);
     // |x| < ∞ is false for NaN and ±∞: the row's finiteness, in the update's own pass.
     let mut finite = true;
@@ -458,6 +495,24 @@ mod tests {
         beta2: 0.999,
         eps: 1e-15,
     };
+
+    #[test]
+    fn kept_bias_corrections_are_the_ones_computed_per_row() {
+        let mut kept = BiasCorrections::new(&CONFIG);
+        // Counts that share slots (t and t + 64), repeat, and come back after eviction.
+        for t in [1, 65, 1, 2, 2, 129, 1, 50_000, 7, 65, i32::MAX] {
+            let expected = (
+                (1.0 / (1.0 - CONFIG.beta1.powi(t))) as f32,
+                (1.0 / (1.0 - CONFIG.beta2.powi(t)).sqrt()) as f32,
+            );
+            let got = kept.at(t);
+            assert_eq!(
+                (got.0.to_bits(), got.1.to_bits()),
+                (expected.0.to_bits(), expected.1.to_bits()),
+                "t = {t}"
+            );
+        }
+    }
 
     fn state(n: usize, c: usize) -> (Vec<f32>, Vec<f32>, Vec<f32>, Vec<i32>) {
         (
