@@ -52,10 +52,13 @@ class _Antialias(torch.autograd.Function):
             to_numpy("faces", faces, torch.int32),
             to_numpy("topology", topology, torch.int32),
         )
-        out = native("antialias_forward")(*arrays, camera.core_args(), num_threads())
+        # With a gradient to come, the pixel pairs it blends are kept for the backward,
+        # which would otherwise search them again (half its time).
+        keep = ctx.needs_input_grad[0] or ctx.needs_input_grad[1]
+        out, blends = native("antialias_forward")(*arrays, camera.core_args(), keep, num_threads())
         ctx.set_materialize_grads(False)
         ctx.save_for_backward(color, verts, tri_id, depth, faces, topology)
-        ctx.camera = camera
+        ctx.camera, ctx.blends = camera, blends
         return torch.from_numpy(out)
 
     @staticmethod
@@ -74,6 +77,7 @@ class _Antialias(torch.autograd.Function):
             topology.numpy(),
             ctx.camera.core_args(),
             grad_to_numpy("v_out", v_out, dtype),
+            ctx.blends,
             needs,
             num_threads(),
         )

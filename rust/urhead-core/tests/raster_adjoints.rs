@@ -3,8 +3,9 @@
 //! thread counts.
 
 use urhead_core::raster::{
-    antialias_backward, antialias_forward, edge_topology, interpolate_backward, interpolate_forward,
-    rasterize_backward, rasterize_forward, rasterize_uv, texture_backward, texture_forward, AntialiasInputs,
+    antialias_backward, antialias_backward_blends, antialias_forward, antialias_forward_blends,
+    edge_topology, interpolate_backward, interpolate_forward, rasterize_backward, rasterize_forward,
+    rasterize_uv, texture_backward, texture_forward, AntialiasInputs, RasterImage, SilhouetteBlends,
 };
 use urhead_core::testing::{on_threads, record_stability, Rng};
 use urhead_core::Camera;
@@ -47,6 +48,27 @@ fn camera() -> Camera {
         [0.0, 0.0, 0.0, 1.0],
     ];
     Camera::new(k, view, W, H, 0.01, 100.0).unwrap()
+}
+
+/// The antialias inputs of `color` over a raster of the mesh.
+fn antialias_inputs<'a>(
+    color: &'a [f64],
+    channels: usize,
+    raster: &'a RasterImage<f64>,
+    mesh: (&'a [f64], &'a [i32], &'a [i32]),
+    camera: &'a Camera,
+) -> AntialiasInputs<'a, f64> {
+    let (verts, faces, topology) = mesh;
+    AntialiasInputs {
+        color,
+        channels,
+        tri_id: &raster.tri_id,
+        depth: &raster.depth,
+        verts,
+        faces,
+        topology,
+        camera,
+    }
 }
 
 fn dot(a: &[f64], b: &[f64]) -> f64 {
@@ -178,6 +200,46 @@ fn texture_gradients_match_central_differences() {
 }
 
 #[test]
+fn kept_antialias_blends_out_of_range_are_named_errors() {
+    let good = [0.0, 1.0, 0.0, 1.0, 0.0, 0.25, 0.1, -0.5, 0.2, 0.5];
+    assert_eq!(SilhouetteBlends::from_packed(&good, 2, 2).unwrap().len(), 1);
+    let mut cases = Vec::new();
+    for (k, bad) in [(0, 2.0), (1, -1.0), (2, 0.5), (3, f64::NAN), (4, 2.0)] {
+        let mut b = good;
+        b[k] = bad;
+        cases.push(b.to_vec());
+    }
+    cases.push(good[..9].to_vec()); // not (B, 10)
+    for b in cases {
+        let err = SilhouetteBlends::from_packed(&b, 2, 2).unwrap_err().to_string();
+        assert!(err.contains("blends"), "{err}");
+    }
+    // Blends that fit a larger image are refused by a smaller image's backward.
+    let cam = camera();
+    let (verts, faces) = sphere(8, 12, 0.05, 20);
+    let topology = edge_topology(&faces, verts.len() / 3).unwrap();
+    let raster = rasterize_forward(&verts, &faces, &cam).unwrap();
+    let pixels = raster.tri_id.len();
+    let color = vec![0.5f64; pixels * 3];
+    let far = [
+        pixels as f64 + 1.0,
+        pixels as f64 + 2.0,
+        0.0,
+        1.0,
+        0.0,
+        0.25,
+        0.1,
+        -0.5,
+        0.2,
+        0.5,
+    ];
+    let blends = SilhouetteBlends::from_packed(&far, pixels + 8, verts.len() / 3).unwrap();
+    let inputs = antialias_inputs(&color, 3, &raster, (&verts, &faces, &topology), &cam);
+    let err = antialias_backward_blends(&inputs, &color, true, true, &blends).unwrap_err();
+    assert!(err.to_string().contains("blends"), "{err}");
+}
+
+#[test]
 fn antialias_gradients_match_central_differences() {
     let cam = camera();
     let (h, w, c) = (H as usize, W as usize, 3);
@@ -191,31 +253,21 @@ fn antialias_gradients_match_central_differences() {
         let inputs = |v: &'_ [f64], col: &'_ [f64]| -> Vec<f64> {
             let r = rasterize_forward(v, &faces, &cam).unwrap();
             assert_eq!(r.tri_id, raster.tri_id, "coverage changed under the perturbation");
-            let a = AntialiasInputs {
-                color: col,
-                channels: c,
-                tri_id: &r.tri_id,
-                depth: &r.depth,
-                verts: v,
-                faces: &faces,
-                topology: &topology,
-                camera: &cam,
-            };
-            antialias_forward(&a).unwrap()
+            antialias_forward(&antialias_inputs(col, c, &r, (v, &faces, &topology), &cam)).unwrap()
         };
-        let base = AntialiasInputs {
-            color: &color,
-            channels: c,
-            tri_id: &raster.tri_id,
-            depth: &raster.depth,
-            verts: &verts,
-            faces: &faces,
-            topology: &topology,
-            camera: &cam,
-        };
+        let base = antialias_inputs(&color, c, &raster, (&verts, &faces, &topology), &cam);
         let out = antialias_forward(&base).unwrap();
         assert!(out.iter().zip(&color).filter(|(a, b)| a != b).count() > 20);
         let g = antialias_backward(&base, &weights, true, true).unwrap();
+        // The forward's blends, kept (and passed through their packed form, as from
+        // Python), give the backward's gradients bit for bit without a second search.
+        let (kept_out, blends) = antialias_forward_blends(&base).unwrap();
+        assert_eq!(kept_out, out);
+        assert!(blends.len() > 20);
+        let packed = SilhouetteBlends::from_packed(&blends.packed(), h * w, verts.len() / 3).unwrap();
+        assert_eq!(packed, blends);
+        let kept = antialias_backward_blends(&base, &weights, true, true, &packed).unwrap();
+        assert_eq!((&kept.v_color, &kept.v_verts), (&g.v_color, &g.v_verts));
         let d: Vec<f64> = rng.vec(color.len(), -1.0, 1.0);
         check(
             g.v_color.as_ref().unwrap(),

@@ -4,7 +4,7 @@
 use numpy::{Element, PyReadonlyArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::PyTuple;
-use urhead_core::raster::{self, AntialiasInputs};
+use urhead_core::raster::{self, AntialiasInputs, SilhouetteBlends, PACKED_BLEND};
 use urhead_core::Real;
 
 use crate::arrays::{array, data, optional, shape, with_float_type};
@@ -262,14 +262,23 @@ fn antialias_forward_typed<'py, T: Element + Real>(
     py: Python<'py>,
     arrays: AntialiasArrays<'py, T>,
     camera_args: CameraArgs,
+    keep_blends: bool,
     num_threads: usize,
-) -> PyResult<Bound<'py, numpy::PyArrayDyn<T>>> {
+) -> PyResult<Bound<'py, PyTuple>> {
     let cam = camera(camera_args)?;
     let (inputs, s) = arrays.inputs(&cam)?;
-    let out = py
-        .allow_threads(|| with_threads(num_threads, || raster::antialias_forward(&inputs)))
+    let (out, blends) = py
+        .allow_threads(|| with_threads(num_threads, || raster::antialias_forward_blends(&inputs)))
         .map_err(py_err)?;
-    array(py, out, &s)
+    let blends = keep_blends.then(|| blends.packed());
+    let rows = blends.as_ref().map_or(0, |b| b.len() / PACKED_BLEND);
+    PyTuple::new(
+        py,
+        [
+            array(py, out, &s)?.into_any().unbind(),
+            optional(py, blends, &[rows, PACKED_BLEND])?,
+        ],
+    )
 }
 
 fn antialias_backward_typed<'py, T: Element + Real>(
@@ -277,6 +286,7 @@ fn antialias_backward_typed<'py, T: Element + Real>(
     arrays: AntialiasArrays<'py, T>,
     camera_args: CameraArgs,
     v_out: Arr<'py, T>,
+    blends: Option<Arr<'py, f64>>,
     needs: (bool, bool),
     num_threads: usize,
 ) -> PyResult<Bound<'py, PyTuple>> {
@@ -284,10 +294,22 @@ fn antialias_backward_typed<'py, T: Element + Real>(
     let (inputs, s) = arrays.inputs(&cam)?;
     shape(&v_out, "v_out", 3, "(H, W, C)")?;
     let g = data(&v_out, "v_out")?;
+    let blends = match &blends {
+        Some(b) => {
+            shape_last(b, "blends", 2, PACKED_BLEND, "(B, 10) float64")?;
+            let pixels = inputs.tri_id.len();
+            Some(
+                SilhouetteBlends::from_packed(data(b, "blends")?, pixels, inputs.verts.len() / 3)
+                    .map_err(py_err)?,
+            )
+        }
+        None => None,
+    };
     let out = py
         .allow_threads(|| {
-            with_threads(num_threads, || {
-                raster::antialias_backward(&inputs, g, needs.0, needs.1)
+            with_threads(num_threads, || match &blends {
+                Some(b) => raster::antialias_backward_blends(&inputs, g, needs.0, needs.1, b),
+                None => raster::antialias_backward(&inputs, g, needs.0, needs.1),
             })
         })
         .map_err(py_err)?;
@@ -457,7 +479,9 @@ pub fn texture_backward<'py>(
     ))
 }
 
-/// antialias → (H, W, C).
+/// antialias → `(image (H, W, C), blends (B, 10) float64 or None)`: the blends (with
+/// `keep_blends`) are the pixel pairs it blended, which its backward can take instead of
+/// searching them again.
 #[pyfunction]
 pub fn antialias_forward<'py>(
     py: Python<'py>,
@@ -468,6 +492,7 @@ pub fn antialias_forward<'py>(
     faces: Arr<'py, i32>,
     topology: Arr<'py, i32>,
     camera: CameraArgs,
+    keep_blends: bool,
     num_threads: usize,
 ) -> PyResult<Bound<'py, PyAny>> {
     with_float_type!(color, T => {
@@ -479,12 +504,14 @@ pub fn antialias_forward<'py>(
             faces,
             topology,
         };
-        antialias_forward_typed(py, arrays, camera, num_threads).map(Bound::into_any)
+        antialias_forward_typed(py, arrays, camera, keep_blends, num_threads).map(Bound::into_any)
     })
 }
 
-/// antialias backward → (v_color, v_verts), None where not requested.
+/// antialias backward → (v_color, v_verts), None where not requested; `blends` from the
+/// forward on the same inputs, or None to find them again.
 #[pyfunction]
+#[pyo3(signature = (color, tri_id, depth, verts, faces, topology, camera, v_out, blends, needs, num_threads))]
 pub fn antialias_backward<'py>(
     py: Python<'py>,
     color: &Bound<'py, PyAny>,
@@ -495,6 +522,7 @@ pub fn antialias_backward<'py>(
     topology: Arr<'py, i32>,
     camera: CameraArgs,
     v_out: &Bound<'py, PyAny>,
+    blends: Option<Arr<'py, f64>>,
     needs: (bool, bool),
     num_threads: usize,
 ) -> PyResult<Bound<'py, PyTuple>> {
@@ -507,7 +535,7 @@ pub fn antialias_backward<'py>(
             faces,
             topology,
         };
-        antialias_backward_typed(py, arrays, camera, v_out.extract()?, needs, num_threads)
+        antialias_backward_typed(py, arrays, camera, v_out.extract()?, blends, needs, num_threads)
     })
 }
 

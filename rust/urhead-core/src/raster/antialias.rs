@@ -88,7 +88,7 @@ struct Scene<'a, T> {
 }
 
 /// One antialiased pixel pair.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 struct Blend {
     /// The pair: `p1` is right of / below `p0`.
     p0: usize,
@@ -154,7 +154,8 @@ impl<'a, T: Real> AntialiasInputs<'a, T> {
         Ok((w, h, c))
     }
 
-    fn scene(&self) -> Scene<'a, T> {
+    /// The vertices in camera space, and projected: `(pixel x, pixel y, camera depth)`.
+    fn projection(&self) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
         let cam = self.camera;
         let m = cam.viewmat.map(|row| row.map(|x| x as f64));
         let (fx, fy, cx, cy) = (cam.fx as f64, cam.fy as f64, cam.cx as f64, cam.cy as f64);
@@ -170,6 +171,12 @@ impl<'a, T: Real> AntialiasInputs<'a, T> {
             .iter()
             .map(|c| [fx * c[0] / c[2] + cx, fy * c[1] / c[2] + cy, c[2]])
             .collect();
+        (cam_space, projected)
+    }
+
+    fn scene(&self) -> Scene<'a, T> {
+        let cam = self.camera;
+        let (cam_space, projected) = self.projection();
         let near = cam.near as f64;
         let silhouette = self
             .faces
@@ -334,22 +341,115 @@ impl<T: Real> Scene<'_, T> {
     }
 }
 
+/// The pixel pairs a forward pass blended, in its order: the decisions its backward would
+/// make again from the same inputs. A training step keeps them from the forward, so the
+/// pixel pairs are searched (and silhouettes walked) once instead of twice.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SilhouetteBlends(Vec<Blend>);
+
+/// Floats a blend takes in [`SilhouetteBlends::packed`].
+pub const PACKED_BLEND: usize = 10;
+
+impl SilhouetteBlends {
+    pub fn len(&self) -> usize {
+        self.0.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.0.is_empty()
+    }
+
+    /// `(B, 10)` float64: `p0, p1`, the edge's two vertices, `vertical` (0 or 1), `alpha`,
+    /// then the two vertices' positions in the pair's frame (4); indices are exact in f64.
+    pub fn packed(&self) -> Vec<f64> {
+        self.0
+            .iter()
+            .flat_map(|b| {
+                let [a, c] = b.rel;
+                [
+                    b.p0 as f64,
+                    b.p1 as f64,
+                    b.verts[0] as f64,
+                    b.verts[1] as f64,
+                    f64::from(u8::from(b.vertical)),
+                    b.alpha,
+                    a[0],
+                    a[1],
+                    c[0],
+                    c[1],
+                ]
+            })
+            .collect()
+    }
+
+    /// Blends from [`Self::packed`], checked against an image of `pixels` pixels and
+    /// `num_verts` vertices (any index out of range, or not a whole number, is an error,
+    /// so nothing is read out of bounds).
+    pub fn from_packed(packed: &[f64], pixels: usize, num_verts: usize) -> Result<Self> {
+        let bad = |reason: String| Error::Invalid {
+            arg: "blends",
+            reason,
+        };
+        if packed.len() % PACKED_BLEND != 0 {
+            return Err(bad(format!(
+                "must be (B, {PACKED_BLEND}), got {} floats",
+                packed.len()
+            )));
+        }
+        let index = |x: f64, high: usize, what: &str, row: usize| {
+            if x >= 0.0 && x < high as f64 && x.fract() == 0.0 {
+                Ok(x as usize)
+            } else {
+                Err(bad(format!("row {row}: {what} {x} is not an index below {high}")))
+            }
+        };
+        packed
+            .chunks_exact(PACKED_BLEND)
+            .enumerate()
+            .map(|(row, b)| {
+                let vertical = match b[4] {
+                    0.0 => false,
+                    1.0 => true,
+                    x => return Err(bad(format!("row {row}: vertical must be 0 or 1, got {x}"))),
+                };
+                Ok(Blend {
+                    p0: index(b[0], pixels, "pixel", row)?,
+                    p1: index(b[1], pixels, "pixel", row)?,
+                    alpha: b[5],
+                    verts: [
+                        index(b[2], num_verts, "vertex", row)?,
+                        index(b[3], num_verts, "vertex", row)?,
+                    ],
+                    rel: [[b[6], b[7]], [b[8], b[9]]],
+                    vertical,
+                })
+            })
+            .collect::<Result<Vec<_>>>()
+            .map(Self)
+    }
+}
+
 /// Antialiased copy of `inputs.color`, `(H, W, C)`.
 pub fn antialias_forward<T: Real>(inputs: &AntialiasInputs<T>) -> Result<Vec<T>> {
+    Ok(antialias_forward_blends(inputs)?.0)
+}
+
+/// [`antialias_forward`] and the blends it made, for [`antialias_backward_blends`].
+pub fn antialias_forward_blends<T: Real>(inputs: &AntialiasInputs<T>) -> Result<(Vec<T>, SilhouetteBlends)> {
     let (_, _, c) = inputs.validate()?;
     let scene = inputs.scene();
-    let blends = scene.all_blends();
+    let blends: Vec<Blend> = scene.all_blends().into_iter().flatten().collect();
     let color = inputs.color;
     let mut out = zeroed("antialiased image", color.len())?;
     out.copy_from_slice(color);
-    for b in blends.iter().flatten() {
+    for b in &blends {
         let t = b.target();
         let alpha = T::c(b.alpha);
         for k in 0..c {
             out[t * c + k] += alpha * (color[b.p1 * c + k] - color[b.p0 * c + k]);
         }
     }
-    Ok(out)
+    Ok((out, SilhouetteBlends(blends)))
 }
 
 /// Adjoint of [`antialias_forward`] given `v_out (H, W, C)`.
@@ -359,16 +459,45 @@ pub fn antialias_backward<T: Real>(
     need_color: bool,
     need_verts: bool,
 ) -> Result<AntialiasGrads<T>> {
+    inputs.validate()?;
+    let blends = SilhouetteBlends(inputs.scene().all_blends().into_iter().flatten().collect());
+    antialias_backward_blends(inputs, v_out, need_color, need_verts, &blends)
+}
+
+/// [`antialias_backward`] with the `blends` its forward made on the same inputs
+/// ([`antialias_forward_blends`]): the same gradients, bit for bit, without searching the
+/// pixel pairs again.
+pub fn antialias_backward_blends<T: Real>(
+    inputs: &AntialiasInputs<T>,
+    v_out: &[T],
+    need_color: bool,
+    need_verts: bool,
+    blends: &SilhouetteBlends,
+) -> Result<AntialiasGrads<T>> {
     let (w, h, c) = inputs.validate()?;
     check_len("v_out", v_out, h * w * c, &format!("(H, W, C) = ({h}, {w}, {c})"))?;
-    let scene = inputs.scene();
-    let blends = scene.all_blends();
+    let (_, projected) = inputs.projection();
+    let num_verts = inputs.verts.len() / 3;
+    if let Some(b) = blends
+        .0
+        .iter()
+        .find(|b| b.p0.max(b.p1) >= h * w || b.verts[0].max(b.verts[1]) >= num_verts)
+    {
+        return Err(Error::Invalid {
+            arg: "blends",
+            reason: format!(
+                "a blend of pixels {}, {} and vertices {:?} is outside the image or the mesh",
+                b.p0, b.p1, b.verts
+            ),
+        });
+    }
+    let blends = &blends.0;
     let color = inputs.color;
     let v_color = need_color
         .then(|| -> Result<Vec<T>> {
             let mut v_color = zeroed("color gradient", v_out.len())?;
             v_color.copy_from_slice(v_out);
-            for b in blends.iter().flatten() {
+            for b in blends {
                 let t = b.target();
                 let alpha = T::c(b.alpha);
                 for k in 0..c {
@@ -384,7 +513,7 @@ pub fn antialias_backward<T: Real>(
         let cam = inputs.camera;
         let (fx, fy, cx, cy) = (cam.fx as f64, cam.fy as f64, cam.cx as f64, cam.cy as f64);
         let mut v_cam = vec![0.0f64; inputs.verts.len()];
-        for b in blends.iter().flatten() {
+        for b in blends {
             if b.alpha.abs() >= 0.5 {
                 continue;
             }
@@ -413,7 +542,7 @@ pub fn antialias_backward<T: Real>(
                 } else {
                     (gf[0], gf[1])
                 };
-                let q = &scene.projected[*v];
+                let q = &projected[*v];
                 let z = q[2];
                 v_cam[3 * v] += gx * fx / z;
                 v_cam[3 * v + 1] += gy * fy / z;

@@ -44,7 +44,10 @@ mod texture;
 mod topology;
 mod uv;
 
-pub use antialias::{antialias_backward, antialias_forward, AntialiasGrads, AntialiasInputs};
+pub use antialias::{
+    antialias_backward, antialias_backward_blends, antialias_forward, antialias_forward_blends,
+    AntialiasGrads, AntialiasInputs, SilhouetteBlends, PACKED_BLEND,
+};
 pub use interpolate::{interpolate_backward, interpolate_forward, InterpolateGrads};
 pub use rasterize::{rasterize_backward, rasterize_forward};
 pub use setup::{GUARD_BAND_PX, SUBPIXEL_BITS};
