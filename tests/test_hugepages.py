@@ -49,6 +49,17 @@ def advised_fraction(t: torch.Tensor) -> float:
     return advised / (t.numel() * t.element_size())
 
 
+def assert_backed_if_the_kernel_backs_any(t: torch.Tensor, what: str) -> None:
+    """``t`` (advised, touched) has some 2 MiB pages — unless the kernel gives none to a
+    fresh advised, touched table at this moment either: under CI's parallel load on a
+    fragmented machine it sometimes has none to give, which is not urhead's to test."""
+    if huge_page_kib(t) > 0:
+        return
+    probe = hugepages.zeros(LARGE)
+    probe.fill_(1.0)
+    assert huge_page_kib(probe) == 0, f"{what}: no huge pages, while a fresh probe got some"
+
+
 def _mappings_of(t: torch.Tensor) -> list[tuple[int, list[str]]]:
     """``(bytes of t's storage inside, smaps lines)`` of each mapping overlapping it."""
     lo = t.data_ptr()
@@ -99,7 +110,8 @@ def test_a_large_table_is_backed_by_huge_pages():
     ours = hugepages.zeros(LARGE)
     ours.fill_(1.0)  # first touch: the kernel backs the advised range
     assert advised_fraction(ours) >= 0.9
-    assert huge_page_kib(ours) > 0  # some of it on 2 MiB pages (all of it on an idle machine)
+    # some of it on 2 MiB pages (all of it on an idle machine)
+    assert_backed_if_the_kernel_backs_any(ours, "a fresh table")
 
 
 def test_sparse_adam_state_and_restored_state_are_huge_page_tables():
@@ -114,7 +126,7 @@ def test_sparse_adam_state_and_restored_state_are_huge_page_tables():
         if sys.platform == "linux" and thp_mode() in ("always", "madvise"):
             for name in ("exp_avg", "exp_avg_sq"):
                 assert advised_fraction(state[name]) >= 0.9, name
-                assert huge_page_kib(state[name]) > 0, name
+                assert_backed_if_the_kernel_backs_any(state[name], name)
     for name in ("exp_avg", "exp_avg_sq", "steps"):
         a, b = opt.state[param][name], restored.state[param][name]
         assert torch.equal(a, b) and a.data_ptr() != b.data_ptr()
