@@ -459,9 +459,9 @@ pub fn antialias_backward<T: Real>(
     need_color: bool,
     need_verts: bool,
 ) -> Result<AntialiasGrads<T>> {
-    inputs.validate()?;
+    let dims = inputs.validate()?;
     let blends = SilhouetteBlends(inputs.scene().all_blends().into_iter().flatten().collect());
-    antialias_backward_blends(inputs, v_out, need_color, need_verts, &blends)
+    backward(inputs, dims, v_out, need_color, need_verts, &blends)
 }
 
 /// [`antialias_backward`] with the `blends` its forward made on the same inputs
@@ -474,7 +474,19 @@ pub fn antialias_backward_blends<T: Real>(
     need_verts: bool,
     blends: &SilhouetteBlends,
 ) -> Result<AntialiasGrads<T>> {
-    let (w, h, c) = inputs.validate()?;
+    let dims = inputs.validate()?;
+    backward(inputs, dims, v_out, need_color, need_verts, blends)
+}
+
+/// Both backward entry points after validating `inputs` (image `(w, h, c)`).
+fn backward<T: Real>(
+    inputs: &AntialiasInputs<T>,
+    (w, h, c): (usize, usize, usize),
+    v_out: &[T],
+    need_color: bool,
+    need_verts: bool,
+    blends: &SilhouetteBlends,
+) -> Result<AntialiasGrads<T>> {
     check_len("v_out", v_out, h * w * c, &format!("(H, W, C) = ({h}, {w}, {c})"))?;
     let (_, projected) = inputs.projection();
     let num_verts = inputs.verts.len() / 3;
