@@ -73,12 +73,14 @@ CASES = {
     30: "Empty mask, head partly/wholly off-screen, constant colour, one training frame",
     31: "Every rate ×10 and ×0.1, aggressive FLAME rates; bad steps rolled back, never saved",
     32: "Long run at reduced size: finite, Gaussians within budget, memory flat",
+    # urhead's own addition to NUMERICS.md's list (issue 15: reduced-precision state).
+    33: "bfloat16 Adam moments: v decays as exact v does; steps follow the float64 reference",
 }
 GROUPS = [
     ("Mesh raster / interpolate / texture / antialias", range(1, 9)),
     ("Gaussian splatting", range(9, 22)),
     ("Skinning", range(22, 25)),
-    ("Optimiser", range(25, 26)),
+    ("Optimiser", [25, 33]),
     ("Inputs and limits", range(26, 28)),
     ("The whole fit", range(28, 33)),
 ]

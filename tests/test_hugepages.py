@@ -97,8 +97,16 @@ def test_zeros_are_zeros_of_the_asked_shape_and_dtype():
 
 
 def test_other_dtypes_are_refused_with_a_typed_error():
-    with pytest.raises(DTypeError, match=r"float32 or int32.*float64"):
+    with pytest.raises(DTypeError, match=r"float32, int32 or bfloat16.*float64"):
         hugepages.zeros((4,), torch.float64)
+
+
+def test_bfloat16_tables_are_zero_and_write_through():
+    table = hugepages.zeros((3, 5), torch.bfloat16)
+    assert table.dtype == torch.bfloat16 and table.shape == (3, 5) and not table.any()
+    copied = hugepages.copy(torch.tensor([[1.5, -2.0], [3.25, 1e-3]], dtype=torch.bfloat16))
+    assert copied.dtype == torch.bfloat16
+    assert copied.float().tolist() == [[1.5, -2.0], [3.25, torch.tensor(1e-3).bfloat16().item()]]
 
 
 def test_copy_is_equal_and_independent():
@@ -123,12 +131,13 @@ def test_a_large_table_is_backed_by_huge_pages():
     assert_backed_if_the_kernel_backs_any(ours, "a fresh table")
 
 
-def test_sparse_adam_state_and_restored_state_are_huge_page_tables():
+@pytest.mark.parametrize("moments", ["float32", "bfloat16"])
+def test_sparse_adam_state_and_restored_state_are_huge_page_tables(moments):
     param = torch.randn(LARGE)
     param.grad = torch.randn(LARGE)  # every row: the step touches all of the moments
-    opt = SparseAdam([param], lr=1e-2)
+    opt = SparseAdam([param], lr=1e-2, moments=moments)
     opt.step()
-    restored = SparseAdam([param], lr=1e-2)
+    restored = SparseAdam([param], lr=1e-2, moments=moments)
     restored.load_state_dict(opt.state_dict())
     # The step reads each moment before writing it; load_state_dict writes its copies.
     for state, read_first in ((opt.state[param], True), (restored.state[param], False)):

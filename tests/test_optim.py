@@ -1,5 +1,6 @@
-"""urhead.optim.SparseAdam against the plain-torch reference, NUMERICS.md case 25, and
-the sparse contract (untouched texels bit-identical, sparse and dense gradients agree)."""
+"""urhead.optim.SparseAdam against the plain-torch reference, NUMERICS.md cases 25 and 33
+(bfloat16 moments), and the sparse contract (untouched texels bit-identical, sparse and
+dense gradients agree)."""
 
 import math
 
@@ -9,10 +10,11 @@ import torch
 from urhead.errors import DTypeError, InvalidArgumentError, ShapeError
 from urhead.ops import TextureGather
 from urhead.ops import _reference as ref
-from urhead.optim import RowJournal, SparseAdam
+from urhead.optim import RowJournal, SparseAdam, moment_array
 
 H, W, C = 16, 12, 5
 LR = torch.tensor([5e-4, 1e-3, 5e-3, 5e-2, 1e-5])
+MOMENTS = ["float32", "bfloat16"]
 
 
 def sparse_grad(rows, values):
@@ -126,13 +128,14 @@ def test_bad_arguments_are_named():
         SparseAdam([p], lr=0.1, betas=(1.0, 0.999)).step()
 
 
-def test_deterministic_across_thread_counts(monkeypatch, stability):
+@pytest.mark.parametrize("moments", MOMENTS)
+def test_deterministic_across_thread_counts(monkeypatch, stability, moments):
     results = []
     for n in ("1", "2", "3"):
         monkeypatch.setenv("URHEAD_NUM_THREADS", n)
         g = torch.Generator().manual_seed(2)
         p = torch.randn(64, 64, C, generator=g)
-        opt = SparseAdam([p], lr=LR)
+        opt = SparseAdam([p], lr=LR, moments=moments)
         for _ in range(3):
             rows = torch.randperm(64 * 64, generator=g)[:1500].sort().values
             values = torch.randn(1500, C, generator=g)
@@ -140,9 +143,15 @@ def test_deterministic_across_thread_counts(monkeypatch, stability):
                 torch.stack([rows // 64, rows % 64]), values, (64, 64, C), check_invariants=True
             )
             opt.step()
-        results.append(p)
+        state = opt.state[p]
+        results.append(torch.cat([p, state["exp_avg"].float(), state["exp_avg_sq"].float()]))
     differing = sum(int((r != results[0]).sum()) for r in results)
-    stability.record(27, "sparse Adam: elements differing across 1, 2, 3 threads", differing, 0)
+    stability.record(
+        27,
+        f"sparse Adam ({moments} moments): elements differing across 1, 2, 3 threads",
+        differing,
+        0,
+    )
     assert all(torch.equal(r, results[0]) for r in results)
 
 
@@ -169,15 +178,16 @@ def test_state_dict_round_trip_keeps_int32_steps_and_continues_identically():
     assert torch.equal(a, b)
 
 
-def test_a_reported_step_gives_channel_peaks_and_a_journal_undoes_its_steps_exactly():
+@pytest.mark.parametrize("moments", MOMENTS)
+def test_a_reported_step_gives_channel_peaks_and_a_journal_undoes_its_steps_exactly(moments):
     g = torch.Generator().manual_seed(3)
     param = torch.randn(H, W, C, generator=g)
-    opt = SparseAdam([param], lr=LR)
+    opt = SparseAdam([param], lr=LR, moments=moments)
     param.grad = sparse_grad(torch.tensor([0, 5]), torch.randn(2, C, generator=g))
     opt.step()  # moments exist and are non-zero before the journal starts
     state = opt.state[param]
     before = [t.clone() for t in (param, state["exp_avg"], state["exp_avg_sq"], state["steps"])]
-    journal = RowJournal(H * W, C)
+    journal = RowJournal(H * W, C, moments)
     for it in range(3):
         rows = torch.tensor([5, 7 + it, 30])
         values = torch.randn(3, C, generator=g)
@@ -189,10 +199,10 @@ def test_a_reported_step_gives_channel_peaks_and_a_journal_undoes_its_steps_exac
         assert torch.equal(report.peaks, expected)
         assert (report.rejected_rows, report.non_finite_rows) == (int(it == 1), 0)
     assert len(journal) == 5  # rows 5, 7, 8, 9, 30, each saved once
-    flat = [param.reshape(-1, C), state["exp_avg"].reshape(-1, C)]
     journal.restore(
-        *(t.numpy() for t in flat),
-        state["exp_avg_sq"].reshape(-1, C).numpy(),
+        param.reshape(-1, C).numpy(),
+        moment_array(state["exp_avg"].reshape(-1, C)),
+        moment_array(state["exp_avg_sq"].reshape(-1, C)),
         state["steps"].numpy(),
     )
     after = (param, state["exp_avg"], state["exp_avg_sq"], state["steps"])
@@ -215,8 +225,9 @@ SPLITS = [[3000], [0, 3000, 0], [2048, 952], [1, 2047, 0, 1500, 452]]
 
 @pytest.mark.parametrize("threads", ["1", "2", "3"])
 @pytest.mark.parametrize("split", SPLITS, ids=str)
+@pytest.mark.parametrize("moments", MOMENTS)
 def test_a_step_on_texture_samples_is_the_step_on_their_built_gradient_bit_for_bit(
-    monkeypatch, threads, split
+    monkeypatch, threads, split, moments
 ):
     """``texture_samples`` builds each texel's gradient as the update reaches it from the
     lookups' segments as recorded (``split``: their lengths — one, several, empty ones, on
@@ -228,8 +239,11 @@ def test_a_step_on_texture_samples_is_the_step_on_their_built_gradient_bit_for_b
     g = torch.Generator().manual_seed(5)
     start = torch.randn(40, 56, C, generator=g)
     built, sampled = start.clone(), start.clone()
-    opts = SparseAdam([built], lr=LR), SparseAdam([sampled], lr=LR)
-    journals = RowJournal(40 * 56, C), RowJournal(40 * 56, C)
+    opts = (
+        SparseAdam([built], lr=LR, moments=moments),
+        SparseAdam([sampled], lr=LR, moments=moments),
+    )
+    journals = RowJournal(40 * 56, C, moments), RowJournal(40 * 56, C, moments)
     for it in range(3):
         uv, v_out = lookups(g, sum(split), C)
         if it == 1:
@@ -255,8 +269,8 @@ def test_a_step_on_texture_samples_is_the_step_on_their_built_gradient_bit_for_b
     state = opts[1].state[sampled]
     journals[1].restore(
         sampled.reshape(-1, C).numpy(),
-        state["exp_avg"].reshape(-1, C).numpy(),
-        state["exp_avg_sq"].reshape(-1, C).numpy(),
+        moment_array(state["exp_avg"].reshape(-1, C)),
+        moment_array(state["exp_avg_sq"].reshape(-1, C)),
         state["steps"].numpy(),
     )
     assert torch.equal(sampled, start)
@@ -281,3 +295,104 @@ def test_texture_samples_are_checked():
     with pytest.raises(InvalidArgumentError, match="not both"):
         opt.step_reported(None, [(uv, v_out)])
     assert torch.equal(p, torch.zeros(4, 4, 3))
+
+
+# --- NUMERICS.md case 33: bfloat16 moments --------------------------------------------
+
+
+def test_case33_bfloat16_second_moments_decay_as_exact_ones(stability):
+    """After a burst of unit gradients, 2000 steps of (numerically) zero gradient: the
+    stored bfloat16 ``v`` decays as the exact float64 ``v`` does, on average over the
+    texels, where ``v`` rounded to nearest would not decay at all (``0.999·v`` rounds back
+    to ``v``: shown on the burst's own ``v``)."""
+    p = torch.zeros(64, 56)
+    opt = SparseAdam([p], lr=1e-3, moments="bfloat16")
+    for _ in range(10):
+        p.grad = torch.ones(64, 56)
+        opt.step()
+    v_burst = opt.state[p]["exp_avg_sq"].clone()
+    assert torch.equal((0.999 * v_burst.float()).bfloat16(), v_burst)  # nearest: stuck
+    for _ in range(2000):
+        p.grad = torch.full((64, 56), 1e-30)  # touched, g² underflows to 0
+        opt.step()
+    exact = (1 - 0.999**10) * 0.999**2000
+    mean = opt.state[p]["exp_avg_sq"].double().mean().item()
+    stability.record(
+        33,
+        "bfloat16 v after 2000 zero-gradient steps: |mean / exact − 1|",
+        abs(mean / exact - 1),
+        0.01,
+    )
+    # Each stochastic rounding adds relative noise of std ≤ half bfloat16's relative
+    # spacing (2⁻⁷ at most), and a pure decay does not damp relative noise: ≤ √2000·2⁻⁸.
+    spread = (opt.state[p]["exp_avg_sq"].double() / exact - 1).std().item()
+    stability.record(
+        33, "bfloat16 v over the texels: std of v / exact − 1", spread, 2000**0.5 / 256
+    )
+
+
+def test_case33_bfloat16_steps_follow_the_float64_reference(stability):
+    """A noisy quadratic over 300 steps of sparse gradients spanning 1e-6 to 1e2: the
+    parameters with bfloat16 moments stay as close to the float64 reference as float32
+    moments' do, relative to how far the parameters moved."""
+    g = torch.Generator().manual_seed(7)
+    start = torch.randn(H * W, C, generator=g)
+    target = torch.randn(H * W, C, generator=g)
+    scale = torch.tensor([1e-6, 1e-3, 1.0, 1e2, 1e-2])
+    params = {moments: start.clone() for moments in MOMENTS}
+    opts = {moments: SparseAdam([params[moments]], lr=LR, moments=moments) for moments in MOMENTS}
+    expect = start.clone()
+    m, v = torch.zeros_like(expect), torch.zeros_like(expect)
+    steps = torch.zeros(H * W, dtype=torch.int64)
+    for _ in range(300):
+        rows = torch.randperm(H * W, generator=g)[:100].sort().values
+        noise = torch.randn(100, C, generator=g)
+        grads = ((expect[rows] - target[rows]) + 0.3 * noise) * scale
+        for moments in MOMENTS:
+            param = params[moments]
+            param.grad = torch.zeros_like(param).index_put((rows,), grads)
+            opts[moments].step()
+        ref.sparse_adam_step(expect, m, v, steps, rows, grads, LR, 0.9, 0.999, 1e-15)
+    moved = (expect - start).abs().amax(0)  # (C,)
+    errors = {k: ((p - expect).abs().amax(0) / moved).max().item() for k, p in params.items()}
+    stability.record(
+        33, "bfloat16 moments: max |p − p_ref| / max |p_ref − p_0|", errors["bfloat16"], 0.05
+    )
+    stability.record(33, "float32 moments, the same", errors["float32"], 1e-4)
+
+
+def test_moment_kinds_are_checked_and_a_state_loads_into_either():
+    p = torch.zeros(4, 4, 3)
+    with pytest.raises(InvalidArgumentError, match="moments must be one of"):
+        SparseAdam([p], moments="float16")
+    with pytest.raises(InvalidArgumentError, match="moments must be"):
+        RowJournal(16, 3, "float64")
+    opt = SparseAdam([p], lr=0.1, moments="bfloat16")
+    p.grad = torch.ones(4, 4, 3)
+    opt.step()
+    state = opt.state[p]
+    assert state["exp_avg"].dtype == state["exp_avg_sq"].dtype == torch.bfloat16
+    with pytest.raises(InvalidArgumentError, match="journal keeps moments of the other kind"):
+        opt.step_reported(RowJournal(16, 3, "float32"))
+    widened = SparseAdam([p], lr=0.1)  # float32 moments: bfloat16 ones widen exactly
+    widened.load_state_dict(opt.state_dict())
+    assert widened.state[p]["exp_avg_sq"].dtype == torch.float32
+    assert torch.equal(widened.state[p]["exp_avg_sq"], state["exp_avg_sq"].float())
+    narrowed = SparseAdam([p], lr=0.1, moments="bfloat16")
+    narrowed.load_state_dict(widened.state_dict())
+    assert torch.equal(narrowed.state[p]["exp_avg"], state["exp_avg"])
+
+
+def test_bfloat16_first_moments_round_as_torch_converts():
+    """The first step stores m = (1 − β1)·g rounded to nearest: bit for bit torch's own
+    float32 → bfloat16 conversion, over gradients spanning 1e-30 to 1e30."""
+    g = torch.Generator().manual_seed(11)
+    p = torch.zeros(100, 100)
+    grad = torch.randn(100, 100, generator=g) * 10.0 ** torch.randint(
+        -30, 30, (100, 100), generator=g
+    )
+    p.grad = grad
+    opt = SparseAdam([p], lr=0.1, moments="bfloat16")
+    opt.step()
+    expected = (torch.tensor(1 - 0.9, dtype=torch.float32) * grad).bfloat16()
+    assert torch.equal(opt.state[p]["exp_avg"].view(torch.int16), expected.view(torch.int16))

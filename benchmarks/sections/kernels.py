@@ -77,7 +77,7 @@ def adam_rows(quick: bool) -> list[dict]:
     size = f"{bench_adam.SIDE}² × {bench_adam.CHANNELS} atlas"
     return [
         _row(
-            "sparse Adam step",
+            f"sparse Adam step ({name.split('(')[1].split(')')[0]})",
             f"{size}, {name.split(', ')[1]}",
             ours,
             dense_ms,

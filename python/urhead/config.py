@@ -183,6 +183,12 @@ class FitConfig:
         "rotation — light fixed in the room while the head turns (ours; paper: off)",
     )
     lr_shading: float = option(1e-3, "learning rate of the shading maps A (ours)")
+    map_moments: Literal["float32", "bfloat16"] = option(
+        "bfloat16",
+        "storage of the maps' Adam moments: bfloat16 halves their memory and a third of "
+        "the optimiser's memory traffic; the second moment is rounded stochastically so it "
+        "still decays (ours)",
+    )
     checkpoint_every: int = option(1_000, "iterations between atomic checkpoints (ours)")
     refine_steps: int = option(
         20,

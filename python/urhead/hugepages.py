@@ -22,19 +22,20 @@ import torch
 from urhead.errors import DTypeError
 from urhead.ops._bridge import native
 
-_DTYPE_NAMES = {torch.float32: "float32", torch.int32: "int32"}
+# numpy has no bfloat16: its tables are allocated as their uint16 bits and viewed back.
+_DTYPE_NAMES = {torch.float32: "float32", torch.int32: "int32", torch.bfloat16: "uint16"}
 
 
 def zeros(shape: tuple[int, ...] | torch.Size, dtype: torch.dtype = torch.float32) -> torch.Tensor:
-    """A contiguous tensor of zeros of ``shape`` (float32 or int32) on huge pages."""
+    """A contiguous tensor of zeros of ``shape`` (float32, int32 or bfloat16) on huge pages."""
     if dtype not in _DTYPE_NAMES:
-        raise DTypeError(f"huge-page tensors are float32 or int32, got {dtype}")
+        raise DTypeError(f"huge-page tensors are float32, int32 or bfloat16, got {dtype}")
     flat = torch.from_numpy(native("huge_page_zeros")(math.prod(shape), _DTYPE_NAMES[dtype]))
-    return flat.reshape(shape)
+    return flat.view(dtype).reshape(shape)
 
 
 def copy(tensor: torch.Tensor) -> torch.Tensor:
-    """A contiguous copy of ``tensor`` (float32 or int32, CPU) on huge pages; it never
+    """A contiguous copy of ``tensor`` (float32, int32 or bfloat16, CPU) on huge pages; it never
     shares memory or autograd history with ``tensor``."""
     out = zeros(tensor.shape, tensor.dtype)
     out.copy_(tensor.detach())

@@ -48,10 +48,21 @@ def rows_and_values(param: torch.Tensor, grad: torch.Tensor) -> tuple[torch.Tens
 
 
 RowJournal = native("RowJournal")
-"""``RowJournal(rows, channels)``: the values the rows of one ``(rows, channels)`` table had
-before steps given it first changed them since its last ``clear()``; ``restore(param,
-exp_avg, exp_avg_sq, steps)`` (flat ``(N, C)`` views and ``(N,)`` counts) writes them back.
-Its buffers keep their capacity across clears."""
+"""``RowJournal(rows, channels, moments="float32")``: the values the rows of one ``(rows,
+channels)`` table had before steps given it first changed them since its last ``clear()``;
+``restore(param, exp_avg, exp_avg_sq, steps)`` (flat ``(N, C)`` views — the moments through
+:func:`moment_array` — and ``(N,)`` counts) writes them back. ``moments`` is the optimiser's
+(:attr:`SparseAdam.moments`). Its buffers keep their capacity across clears."""
+
+MOMENT_DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16}
+
+
+def moment_array(moment: torch.Tensor):
+    """A moment table as the native step takes it: float32 as is, bfloat16 as its uint16
+    bits (numpy has no bfloat16); shares memory with ``moment``."""
+    if moment.dtype == torch.bfloat16:
+        return moment.view(torch.uint16).numpy()
+    return moment.numpy()
 
 
 @dataclass(frozen=True)
@@ -82,7 +93,12 @@ class SparseAdam(torch.optim.Optimizer):
     - ``lr`` may be a float or a (C,) per-channel tensor (one table can hold maps with
       different rates); torch LR schedulers work on either;
     - a texel whose gradient is NaN or infinite is skipped whole and counted in
-      ``state["rejected_rows"]``; steps are bounded by lr·max(1, (1 − β1)/√(1 − β2)).
+      ``state["rejected_rows"]``; steps are bounded by lr·max(1, (1 − β1)/√(1 − β2));
+    - ``moments="bfloat16"`` stores both moments in 16 bits (half their memory, a third
+      less memory traffic a step). The update runs in float32 and only the stored moments
+      are rounded: the first to nearest, the second stochastically (a hash of texel and
+      step count, the same on any thread count), since ``0.999·v`` rounded to nearest
+      bfloat16 is ``v`` again and a texel's ``v`` would never decay (NUMERICS.md case 33).
     """
 
     def __init__(
@@ -91,7 +107,13 @@ class SparseAdam(torch.optim.Optimizer):
         lr: float | Sequence[float] | torch.Tensor = 1e-3,
         betas: tuple[float, float] = (0.9, 0.999),
         eps: float = 1e-15,
+        moments: str = "float32",
     ):
+        if moments not in MOMENT_DTYPES:
+            raise InvalidArgumentError(
+                f"moments must be one of {sorted(MOMENT_DTYPES)}, got {moments!r}"
+            )
+        self.moments = moments
         super().__init__(params, {"lr": lr, "betas": betas, "eps": eps})
         for group in self.param_groups:
             for p in group["params"]:
@@ -106,9 +128,10 @@ class SparseAdam(torch.optim.Optimizer):
                     )
 
     def load_state_dict(self, state_dict: dict) -> None:
-        """As torch's, then the per-texel step counts are made int32 again: torch casts
-        every floating-point-able state tensor to the parameter's dtype (exact for counts
-        below 2²⁴)."""
+        """As torch's, then the per-texel step counts are made int32 again and the moments
+        this optimiser's dtype: torch casts every floating-point-able state tensor to the
+        parameter's dtype (exact for counts below 2²⁴). A state saved with the other moment
+        dtype loads too (float32 moments rounded to nearest bfloat16, or widened exactly)."""
         super().load_state_dict(state_dict)
         for group in self.param_groups:
             for p in group["params"]:
@@ -116,7 +139,8 @@ class SparseAdam(torch.optim.Optimizer):
                 if "steps" in state:
                     state["steps"] = hugepages.copy(state["steps"].to(torch.int32))
                     for moment in ("exp_avg", "exp_avg_sq"):
-                        state[moment] = hugepages.copy(state[moment])
+                        dtype = MOMENT_DTYPES[self.moments]
+                        state[moment] = hugepages.copy(state[moment].to(dtype))
 
     @torch.no_grad()
     def step(self, closure=None):
@@ -165,12 +189,17 @@ class SparseAdam(torch.optim.Optimizer):
         state = self.state[p]
         if not state:
             # Read and written at random rows every step: on huge pages, as the maps are.
-            state["exp_avg"] = hugepages.zeros(p.shape)
-            state["exp_avg_sq"] = hugepages.zeros(p.shape)
+            dtype = MOMENT_DTYPES[self.moments]
+            state["exp_avg"] = hugepages.zeros(p.shape, dtype)
+            state["exp_avg_sq"] = hugepages.zeros(p.shape, dtype)
             state["steps"] = hugepages.zeros((p.numel() // channels,), torch.int32)
             state["rejected_rows"] = 0
         beta1, beta2 = group["betas"]
-        tables = (p.detach().numpy(), state["exp_avg"].numpy(), state["exp_avg_sq"].numpy())
+        tables = (
+            p.detach().numpy(),
+            moment_array(state["exp_avg"]),
+            moment_array(state["exp_avg_sq"]),
+        )
         settings = (
             _channel_lr(group["lr"], channels).numpy(),
             float(beta1),

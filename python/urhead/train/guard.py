@@ -38,7 +38,7 @@ import torch
 
 from urhead.errors import NonFiniteError
 from urhead.model.avatar import POSE_SIZE, Avatar
-from urhead.optim import RowJournal, SparseAdam, StepReport
+from urhead.optim import RowJournal, SparseAdam, StepReport, moment_array
 
 log = logging.getLogger("urhead.fit")
 
@@ -116,7 +116,9 @@ class StepGuard:
         self.frame_loss: dict[int, float] = {}
         self.strikes: dict[int, int] = {}  # loss jumps of a frame since it was last accepted
         self.events: list[GuardEvent] = []
-        self.journal = RowJournal(self.maps.numel() // self.maps.shape[-1], self.maps.shape[-1])
+        self.journal = RowJournal(
+            self.maps.numel() // self.maps.shape[-1], self.maps.shape[-1], maps_opt.moments
+        )
         self._begin_window(start)
 
     # --- the per-iteration calls ----------------------------------------------------
@@ -279,8 +281,8 @@ class StepGuard:
             if state:  # else no step has run, so the journal is empty
                 self.journal.restore(
                     self._flat(self.maps).numpy(),
-                    self._flat(state["exp_avg"]).numpy(),
-                    self._flat(state["exp_avg_sq"]).numpy(),
+                    moment_array(self._flat(state["exp_avg"])),
+                    moment_array(self._flat(state["exp_avg_sq"])),
                     state["steps"].numpy(),
                 )
             frames, moments = self._frames_saved

@@ -203,7 +203,7 @@ class Trainer:
         )
         if not self.parts["eyes"].used:
             frame_lr[_eye_columns(avatar)] = 0.0  # fixed joints
-        maps_opt = SparseAdam([avatar.maps], lr=map_lr.clone())
+        maps_opt = SparseAdam([avatar.maps], lr=map_lr.clone(), moments=c.map_moments)
         frames_opt = SparseAdam([avatar.frame_params], lr=frame_lr)
         return maps_opt, frames_opt, map_lr
 

@@ -1,10 +1,11 @@
 //! Binding of `urhead_core::adam`: updates the optimiser state in place; `RowJournal`
-//! crosses to Python as an opaque object the step saves rows into.
+//! crosses to Python as an opaque object the step saves rows into. Moments are float32 or
+//! bfloat16 (handed over as `uint16` bits).
 
 use numpy::{PyArrayDyn, PyReadonlyArrayDyn, PyReadwriteArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use urhead_core::adam::{
-    sparse_adam_step as step, sparse_adam_step_sampled as step_sampled, AdamConfig,
+    sparse_adam_step as step, sparse_adam_step_sampled as step_sampled, AdamConfig, Bf16,
     RowJournal as CoreJournal, SparseAdamState, StepReport,
 };
 use urhead_core::raster::{texture_gradient_entries, TextureSamples};
@@ -13,59 +14,139 @@ use crate::arrays::{array, data, data_mut};
 use crate::errors::{py_err, InvalidArgumentError};
 use crate::pool::with_threads;
 
+/// A moment table as Python hands it over: float32, or bfloat16 as its raw bits (a torch
+/// `bfloat16` tensor viewed as `uint16`: numpy has no bfloat16).
+#[derive(FromPyObject)]
+pub enum MomentTable<'py> {
+    F32(PyReadwriteArrayDyn<'py, f32>),
+    Bf16(PyReadwriteArrayDyn<'py, u16>),
+}
+
+/// A core journal for either kind of moments.
+enum Journal {
+    F32(CoreJournal<f32>),
+    Bf16(CoreJournal<Bf16>),
+}
+
 /// The values rows of one `(rows, channels)` table had before steps first changed them
-/// since the last `clear()`; `restore(...)` writes them back.
+/// since the last `clear()`; `restore(...)` writes them back. `moments` is the optimiser's
+/// moment dtype, `"float32"` or `"bfloat16"`.
 #[pyclass(module = "urhead._core")]
 pub struct RowJournal {
-    journal: CoreJournal,
+    journal: Journal,
 }
 
 #[pymethods]
 impl RowJournal {
     #[new]
-    fn new(rows: usize, channels: usize) -> Self {
-        Self {
-            journal: CoreJournal::new(rows, channels),
-        }
+    #[pyo3(signature = (rows, channels, moments="float32"))]
+    fn new(rows: usize, channels: usize, moments: &str) -> PyResult<Self> {
+        let journal = match moments {
+            "float32" => Journal::F32(CoreJournal::new(rows, channels)),
+            "bfloat16" => Journal::Bf16(CoreJournal::new(rows, channels)),
+            other => {
+                return Err(InvalidArgumentError::new_err(format!(
+                    "moments must be \"float32\" or \"bfloat16\", got {other:?}"
+                )))
+            }
+        };
+        Ok(Self { journal })
     }
 
     fn __len__(&self) -> usize {
-        self.journal.len()
+        match &self.journal {
+            Journal::F32(j) => j.len(),
+            Journal::Bf16(j) => j.len(),
+        }
     }
 
     fn clear(&mut self) {
-        self.journal.clear();
+        match &mut self.journal {
+            Journal::F32(j) => j.clear(),
+            Journal::Bf16(j) => j.clear(),
+        }
     }
 
     /// Writes the saved rows back into the `(N, C)` tables and `(N,)` step counts.
     fn restore(
-        &self,
+        &mut self,
         mut param: PyReadwriteArrayDyn<'_, f32>,
-        mut exp_avg: PyReadwriteArrayDyn<'_, f32>,
-        mut exp_avg_sq: PyReadwriteArrayDyn<'_, f32>,
+        mut exp_avg: MomentTable<'_>,
+        mut exp_avg_sq: MomentTable<'_>,
         mut steps: PyReadwriteArrayDyn<'_, i32>,
     ) -> PyResult<()> {
         let channels = param.shape().last().copied().unwrap_or(0);
-        let mut state = adam_state(&mut param, &mut exp_avg, &mut exp_avg_sq, &mut steps, channels)?;
-        self.journal.restore(&mut state).map_err(py_err)
+        let state = adam_state(&mut param, &mut exp_avg, &mut exp_avg_sq, &mut steps, channels)?;
+        match state.with_journal(Some(self))? {
+            Typed::F32(mut state, Some(j)) => j.restore(&mut state),
+            Typed::Bf16(mut state, Some(j)) => j.restore(&mut state),
+            _ => unreachable!("a journal was given"),
+        }
+        .map_err(py_err)
     }
 }
 
-/// The optimiser's tables as the core's [`SparseAdamState`] with `channels` per row.
+/// The optimiser's tables as the core's state, its moments of either kind.
+enum AdamState<'a> {
+    F32(SparseAdamState<'a, f32>),
+    Bf16(SparseAdamState<'a, Bf16>),
+}
+
+/// A state with a journal of the same moment kind.
+enum Typed<'a> {
+    F32(SparseAdamState<'a, f32>, Option<&'a mut CoreJournal<f32>>),
+    Bf16(SparseAdamState<'a, Bf16>, Option<&'a mut CoreJournal<Bf16>>),
+}
+
+impl<'a> AdamState<'a> {
+    /// Pairs the state with `journal`, which must keep the same kind of moments.
+    fn with_journal(self, journal: Option<&'a mut RowJournal>) -> PyResult<Typed<'a>> {
+        match (self, journal.map(|j| &mut j.journal)) {
+            (AdamState::F32(s), None) => Ok(Typed::F32(s, None)),
+            (AdamState::Bf16(s), None) => Ok(Typed::Bf16(s, None)),
+            (AdamState::F32(s), Some(Journal::F32(j))) => Ok(Typed::F32(s, Some(j))),
+            (AdamState::Bf16(s), Some(Journal::Bf16(j))) => Ok(Typed::Bf16(s, Some(j))),
+            (state, Some(_)) => {
+                let kind = match state {
+                    AdamState::F32(_) => "float32",
+                    AdamState::Bf16(_) => "bfloat16",
+                };
+                Err(InvalidArgumentError::new_err(format!(
+                    "journal keeps moments of the other kind than the {kind} moments given"
+                )))
+            }
+        }
+    }
+}
+
+/// The optimiser's tables as the core's state with `channels` per row.
 fn adam_state<'a>(
     param: &'a mut PyReadwriteArrayDyn<'_, f32>,
-    exp_avg: &'a mut PyReadwriteArrayDyn<'_, f32>,
-    exp_avg_sq: &'a mut PyReadwriteArrayDyn<'_, f32>,
+    exp_avg: &'a mut MomentTable<'_>,
+    exp_avg_sq: &'a mut MomentTable<'_>,
     steps: &'a mut PyReadwriteArrayDyn<'_, i32>,
     channels: usize,
-) -> PyResult<SparseAdamState<'a>> {
-    Ok(SparseAdamState {
-        param: data_mut(param, "param")?,
-        exp_avg: data_mut(exp_avg, "exp_avg")?,
-        exp_avg_sq: data_mut(exp_avg_sq, "exp_avg_sq")?,
-        steps: data_mut(steps, "steps")?,
-        channels,
-    })
+) -> PyResult<AdamState<'a>> {
+    let (param, steps) = (data_mut(param, "param")?, data_mut(steps, "steps")?);
+    match (exp_avg, exp_avg_sq) {
+        (MomentTable::F32(m), MomentTable::F32(v)) => Ok(AdamState::F32(SparseAdamState {
+            param,
+            exp_avg: data_mut(m, "exp_avg")?,
+            exp_avg_sq: data_mut(v, "exp_avg_sq")?,
+            steps,
+            channels,
+        })),
+        (MomentTable::Bf16(m), MomentTable::Bf16(v)) => Ok(AdamState::Bf16(SparseAdamState {
+            param,
+            exp_avg: Bf16::from_bits_mut(data_mut(m, "exp_avg")?),
+            exp_avg_sq: Bf16::from_bits_mut(data_mut(v, "exp_avg_sq")?),
+            steps,
+            channels,
+        })),
+        _ => Err(InvalidArgumentError::new_err(
+            "exp_avg and exp_avg_sq must both be float32 or both bfloat16 (as uint16)",
+        )),
+    }
 }
 
 /// One sparse Adam step over `rows` of the `(N, C)` tables, saving rows into `journal`
@@ -78,8 +159,8 @@ fn adam_state<'a>(
 pub fn sparse_adam_step<'py>(
     py: Python<'py>,
     mut param: PyReadwriteArrayDyn<'_, f32>,
-    mut exp_avg: PyReadwriteArrayDyn<'_, f32>,
-    mut exp_avg_sq: PyReadwriteArrayDyn<'_, f32>,
+    mut exp_avg: MomentTable<'_>,
+    mut exp_avg_sq: MomentTable<'_>,
     mut steps: PyReadwriteArrayDyn<'_, i32>,
     rows: PyReadonlyArrayDyn<'_, i64>,
     grads: PyReadonlyArrayDyn<'_, f32>,
@@ -91,11 +172,13 @@ pub fn sparse_adam_step<'py>(
     mut journal: Option<PyRefMut<'_, RowJournal>>,
 ) -> PyResult<(usize, usize, Bound<'py, PyArrayDyn<f32>>)> {
     let channels = lr.len();
-    let mut state = adam_state(&mut param, &mut exp_avg, &mut exp_avg_sq, &mut steps, channels)?;
+    let state = adam_state(&mut param, &mut exp_avg, &mut exp_avg_sq, &mut steps, channels)?;
+    let typed = state.with_journal(journal.as_deref_mut())?;
     let (rows, grads) = (data(&rows, "rows")?, data(&grads, "grads")?);
-    let settings = Settings::new(&lr, beta1, beta2, eps, num_threads, journal.as_deref_mut())?;
-    settings.run(py, channels, |lr, config, journal| {
-        step(&mut state, rows, grads, lr, config, journal)
+    let settings = Settings::new(&lr, beta1, beta2, eps, num_threads)?;
+    settings.run(py, channels, |lr, config| match typed {
+        Typed::F32(mut s, j) => step(&mut s, rows, grads, lr, config, j),
+        Typed::Bf16(mut s, j) => step(&mut s, rows, grads, lr, config, j),
     })
 }
 
@@ -110,8 +193,8 @@ pub fn sparse_adam_step<'py>(
 pub fn sparse_adam_step_sampled<'py>(
     py: Python<'py>,
     mut param: PyReadwriteArrayDyn<'_, f32>,
-    mut exp_avg: PyReadwriteArrayDyn<'_, f32>,
-    mut exp_avg_sq: PyReadwriteArrayDyn<'_, f32>,
+    mut exp_avg: MomentTable<'_>,
+    mut exp_avg_sq: MomentTable<'_>,
     mut steps: PyReadwriteArrayDyn<'_, i32>,
     segments: Vec<(PyReadonlyArrayDyn<'_, f32>, PyReadonlyArrayDyn<'_, f32>)>,
     lr: PyReadonlyArrayDyn<'_, f32>,
@@ -127,7 +210,8 @@ pub fn sparse_adam_step_sampled<'py>(
             param.shape()
         )));
     };
-    let mut state = adam_state(&mut param, &mut exp_avg, &mut exp_avg_sq, &mut steps, channels)?;
+    let state = adam_state(&mut param, &mut exp_avg, &mut exp_avg_sq, &mut steps, channels)?;
+    let typed = state.with_journal(journal.as_deref_mut())?;
     let segments = segments
         .iter()
         .map(|(uv, v_out)| {
@@ -137,10 +221,13 @@ pub fn sparse_adam_step_sampled<'py>(
             })
         })
         .collect::<PyResult<Vec<_>>>()?;
-    let settings = Settings::new(&lr, beta1, beta2, eps, num_threads, journal.as_deref_mut())?;
-    settings.run(py, channels, |lr, config, journal| {
+    let settings = Settings::new(&lr, beta1, beta2, eps, num_threads)?;
+    settings.run(py, channels, |lr, config| {
         let texels = texture_gradient_entries(height, width, channels, &segments)?;
-        step_sampled(&mut state, &texels, lr, config, journal)
+        match typed {
+            Typed::F32(mut s, j) => step_sampled(&mut s, &texels, lr, config, j),
+            Typed::Bf16(mut s, j) => step_sampled(&mut s, &texels, lr, config, j),
+        }
     })
 }
 
@@ -149,7 +236,6 @@ struct Settings<'a> {
     lr: &'a [f32],
     config: AdamConfig,
     num_threads: usize,
-    journal: Option<&'a mut CoreJournal>,
 }
 
 impl<'a> Settings<'a> {
@@ -159,13 +245,11 @@ impl<'a> Settings<'a> {
         beta2: f64,
         eps: f64,
         num_threads: usize,
-        journal: Option<&'a mut RowJournal>,
     ) -> PyResult<Self> {
         Ok(Self {
             lr: data(lr, "lr")?,
             config: AdamConfig { beta1, beta2, eps },
             num_threads,
-            journal: journal.map(|j| &mut j.journal),
         })
     }
 
@@ -175,16 +259,15 @@ impl<'a> Settings<'a> {
         self,
         py: Python<'py>,
         channels: usize,
-        step: impl FnOnce(&[f32], &AdamConfig, Option<&mut CoreJournal>) -> urhead_core::Result<StepReport> + Send,
+        step: impl FnOnce(&[f32], &AdamConfig) -> urhead_core::Result<StepReport> + Send,
     ) -> PyResult<(usize, usize, Bound<'py, PyArrayDyn<f32>>)> {
         let Self {
             lr,
             config,
             num_threads,
-            journal,
         } = self;
         let report = py
-            .allow_threads(|| with_threads(num_threads, || step(lr, &config, journal)))
+            .allow_threads(|| with_threads(num_threads, || step(lr, &config)))
             .map_err(py_err)?;
         let peaks = array(py, report.peaks, &[channels])?;
         Ok((report.rejected_rows, report.non_finite_rows, peaks))

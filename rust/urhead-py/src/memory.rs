@@ -11,7 +11,8 @@ use crate::errors::{py_err, InvalidArgumentError};
 
 const WHAT: &str = "huge-page table";
 
-/// `len` zeros of numpy dtype `dtype` ("float32" or "int32") on (advised) huge pages;
+/// `len` zeros of numpy dtype `dtype` ("float32", "int32", or "uint16" for the bits of
+/// bfloat16, which numpy lacks) on (advised) huge pages;
 /// MemoryError when they cannot be had.
 #[pyfunction]
 pub fn huge_page_zeros<'py>(py: Python<'py>, len: usize, dtype: &str) -> PyResult<Bound<'py, PyAny>> {
@@ -24,8 +25,12 @@ pub fn huge_page_zeros<'py>(py: Python<'py>, len: usize, dtype: &str) -> PyResul
             .map_err(py_err)?
             .into_pyarray(py)
             .into_any()),
+        "uint16" => Ok(zeroed::<u16>(WHAT, len)
+            .map_err(py_err)?
+            .into_pyarray(py)
+            .into_any()),
         other => Err(InvalidArgumentError::new_err(format!(
-            "dtype must be float32 or int32, got {other}"
+            "dtype must be float32, int32 or uint16, got {other}"
         ))),
     }
 }

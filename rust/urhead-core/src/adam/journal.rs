@@ -8,12 +8,12 @@
 
 use std::mem::MaybeUninit;
 
-use super::SparseAdamState;
+use super::{Moment, SparseAdamState};
 use crate::error::{check_len, Error, Result};
 
-/// Saved rows of one `(N, C)` table and its Adam state.
+/// Saved rows of one `(N, C)` table and its Adam state (moments stored as `M`).
 #[derive(Debug, Clone)]
-pub struct RowJournal {
+pub struct RowJournal<M: Moment = f32> {
     channels: usize,
     /// `(N,)` whether a row is already saved.
     saved: Vec<bool>,
@@ -21,12 +21,12 @@ pub struct RowJournal {
     rows: Vec<i64>,
     /// `(K, C)` their parameters and moments, `(K,)` their step counts.
     param: Vec<f32>,
-    exp_avg: Vec<f32>,
-    exp_avg_sq: Vec<f32>,
+    exp_avg: Vec<M>,
+    exp_avg_sq: Vec<M>,
     steps: Vec<i32>,
 }
 
-impl RowJournal {
+impl<M: Moment> RowJournal<M> {
     /// An empty journal for a table of `rows` rows of `channels` channels.
     pub fn new(rows: usize, channels: usize) -> Self {
         Self {
@@ -63,7 +63,7 @@ impl RowJournal {
     }
 
     /// Checks that `state` is the table this journal was made for.
-    pub(super) fn check(&self, state: &SparseAdamState<'_>) -> Result<()> {
+    pub(super) fn check(&self, state: &SparseAdamState<'_, M>) -> Result<()> {
         let (n, c) = (self.saved.len(), self.channels);
         if state.channels != c || state.steps.len() != n {
             return Err(Error::Shape {
@@ -82,24 +82,28 @@ impl RowJournal {
     /// Marks the rows of `rows` not saved since the last clear as saved and returns which
     /// of `rows` they are, with free space for their values: the step writes each one's
     /// row into its slot before changing it, then [`RowJournal::commit`] counts them in.
-    pub(super) fn reserve(&mut self, rows: &[i64]) -> Result<(Vec<bool>, SaveSlots<'_>)> {
+    pub(super) fn reserve(&mut self, rows: &[i64]) -> Result<(Vec<bool>, SaveSlots<'_, M>)> {
         let new: Vec<bool> = rows
             .iter()
             .map(|&row| !std::mem::replace(&mut self.saved[row as usize], true))
             .collect();
         let count = new.iter().filter(|&&n| n).count();
         let c = self.channels;
+        let row_bytes = 4 + 2 * std::mem::size_of::<M>();
         let too_large = |what| Error::OutOfMemory {
             what,
             elements: count * c,
-            bytes: (count * c) as u128 * 4,
+            bytes: (count * c * row_bytes) as u128,
         };
         self.rows
             .try_reserve(count)
             .map_err(|_| too_large("journal rows"))?;
         self.rows
             .extend(rows.iter().zip(&new).filter(|(_, &n)| n).map(|(&r, _)| r));
-        for table in [&mut self.param, &mut self.exp_avg, &mut self.exp_avg_sq] {
+        self.param
+            .try_reserve(count * c)
+            .map_err(|_| too_large("journal"))?;
+        for table in [&mut self.exp_avg, &mut self.exp_avg_sq] {
             table.try_reserve(count * c).map_err(|_| too_large("journal"))?;
         }
         self.steps
@@ -131,7 +135,7 @@ impl RowJournal {
 
     /// Writes the saved rows back into `state`: it is then bit for bit what it was at the
     /// last clear. The journal keeps its rows (restoring twice is harmless).
-    pub fn restore(&self, state: &mut SparseAdamState<'_>) -> Result<()> {
+    pub fn restore(&self, state: &mut SparseAdamState<'_, M>) -> Result<()> {
         self.check(state)?;
         let n = self.saved.len();
         check_len(
@@ -165,43 +169,45 @@ impl RowJournal {
 }
 
 /// Free space for rows a step saves: `(K, C)` parameters and moments, `(K,)` step counts.
-pub(super) struct SaveSlots<'a> {
+pub(super) struct SaveSlots<'a, M> {
     pub param: &'a mut [MaybeUninit<f32>],
-    pub exp_avg: &'a mut [MaybeUninit<f32>],
-    pub exp_avg_sq: &'a mut [MaybeUninit<f32>],
+    pub exp_avg: &'a mut [MaybeUninit<M>],
+    pub exp_avg_sq: &'a mut [MaybeUninit<M>],
     pub steps: &'a mut [MaybeUninit<i32>],
 }
 
-impl<'a> SaveSlots<'a> {
+/// Splits the first `len` slots off the front of `slots`.
+fn take_front<'a, T>(slots: &mut &'a mut [MaybeUninit<T>], len: usize) -> &'a mut [MaybeUninit<T>] {
+    let (head, tail) = std::mem::take(slots).split_at_mut(len);
+    *slots = tail;
+    head
+}
+
+/// Writes `row` into `slots` (of the same length).
+fn write_row<T: Copy>(slots: &mut [MaybeUninit<T>], row: &[T]) {
+    for (slot, &x) in slots.iter_mut().zip(row) {
+        slot.write(x);
+    }
+}
+
+impl<'a, M: Moment> SaveSlots<'a, M> {
     /// Splits off the first `rows` rows' slots.
-    pub fn split_off_front(&mut self, rows: usize, channels: usize) -> SaveSlots<'a> {
-        let take = |t: &mut &'a mut [MaybeUninit<f32>]| {
-            let (head, tail) = std::mem::take(t).split_at_mut(rows * channels);
-            *t = tail;
-            head
-        };
-        let (steps, tail) = std::mem::take(&mut self.steps).split_at_mut(rows);
-        self.steps = tail;
+    pub fn split_off_front(&mut self, rows: usize, channels: usize) -> SaveSlots<'a, M> {
+        let len = rows * channels;
         SaveSlots {
-            param: take(&mut self.param),
-            exp_avg: take(&mut self.exp_avg),
-            exp_avg_sq: take(&mut self.exp_avg_sq),
-            steps,
+            param: take_front(&mut self.param, len),
+            exp_avg: take_front(&mut self.exp_avg, len),
+            exp_avg_sq: take_front(&mut self.exp_avg_sq, len),
+            steps: take_front(&mut self.steps, rows),
         }
     }
 
     /// Writes one row into slot `k`.
-    pub fn write(&mut self, k: usize, param: &[f32], exp_avg: &[f32], exp_avg_sq: &[f32], steps: i32) {
-        let c = param.len();
-        for (slots, row) in [
-            (&mut *self.param, param),
-            (&mut *self.exp_avg, exp_avg),
-            (&mut *self.exp_avg_sq, exp_avg_sq),
-        ] {
-            for (slot, &x) in slots[k * c..(k + 1) * c].iter_mut().zip(row) {
-                slot.write(x);
-            }
-        }
+    pub fn write(&mut self, k: usize, param: &[f32], exp_avg: &[M], exp_avg_sq: &[M], steps: i32) {
+        let slots = k * param.len()..(k + 1) * param.len();
+        write_row(&mut self.param[slots.clone()], param);
+        write_row(&mut self.exp_avg[slots.clone()], exp_avg);
+        write_row(&mut self.exp_avg_sq[slots], exp_avg_sq);
         self.steps[k].write(steps);
     }
 }

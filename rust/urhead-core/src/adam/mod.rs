@@ -23,11 +23,14 @@
 //! fit never stores (or pages in) the `(K, C)` gradient and reads it back.
 
 mod journal;
+mod moments;
 
 use rayon::prelude::*;
 
 pub use journal::RowJournal;
 use journal::SaveSlots;
+use moments::{channel_random, row_seed};
+pub use moments::{Bf16, Moment};
 
 use crate::error::{check_len, Error, Result};
 use crate::memory::prefetch;
@@ -65,15 +68,16 @@ impl AdamConfig {
     }
 }
 
-/// The optimiser state of one table, borrowed mutably for a step.
+/// The optimiser state of one table, borrowed mutably for a step. The moments are `f32`
+/// or [`Bf16`] (see [`Moment`]); the parameters are always `f32`.
 #[derive(Debug)]
-pub struct SparseAdamState<'a> {
+pub struct SparseAdamState<'a, M: Moment = f32> {
     /// `(N, C)` parameters.
     pub param: &'a mut [f32],
     /// `(N, C)` first moments.
-    pub exp_avg: &'a mut [f32],
+    pub exp_avg: &'a mut [M],
     /// `(N, C)` second moments.
-    pub exp_avg_sq: &'a mut [f32],
+    pub exp_avg_sq: &'a mut [M],
     /// `(N,)` number of accepted steps of each row.
     pub steps: &'a mut [i32],
     pub channels: usize,
@@ -97,13 +101,13 @@ pub struct StepReport {
 /// One sparse step. `rows (K,)` must be strictly increasing row indices (a coalesced
 /// sparse gradient), `grads (K, C)` their gradients, `lr (C,)` per-channel rates. With a
 /// `journal`, every row not yet in it is saved before the step writes it.
-pub fn sparse_adam_step(
-    state: &mut SparseAdamState<'_>,
+pub fn sparse_adam_step<M: Moment>(
+    state: &mut SparseAdamState<'_, M>,
     rows: &[i64],
     grads: &[f32],
     lr: &[f32],
     config: &AdamConfig,
-    journal: Option<&mut RowJournal>,
+    journal: Option<&mut RowJournal<M>>,
 ) -> Result<StepReport> {
     let c = state.channels;
     check_len(
@@ -128,12 +132,12 @@ pub fn sparse_adam_step(
 /// row is summed as the step reaches it, so the `(K, C)` gradient is never stored. The same
 /// result, bit for bit, as [`sparse_adam_step`] on the coalesced gradient
 /// ([`texture_backward`](crate::raster::texture_backward)) of the same lookups.
-pub fn sparse_adam_step_sampled(
-    state: &mut SparseAdamState<'_>,
+pub fn sparse_adam_step_sampled<M: Moment>(
+    state: &mut SparseAdamState<'_, M>,
     texels: &TexelEntries<'_, f32>,
     lr: &[f32],
     config: &AdamConfig,
-    journal: Option<&mut RowJournal>,
+    journal: Option<&mut RowJournal<M>>,
 ) -> Result<StepReport> {
     let (c, n) = (state.channels, state.param.len() / state.channels.max(1));
     if texels.channels() != c || texels.texel_count() != n {
@@ -183,13 +187,13 @@ impl RowGradients for TexelEntries<'_, f32> {
 }
 
 /// The step over `rows` (validated here) with each row's gradient from `grads`.
-fn step_rows<G: RowGradients>(
-    state: &mut SparseAdamState<'_>,
+fn step_rows<M: Moment, G: RowGradients>(
+    state: &mut SparseAdamState<'_, M>,
     rows: &[i64],
     grads: &G,
     lr: &[f32],
     config: &AdamConfig,
-    journal: Option<&mut RowJournal>,
+    journal: Option<&mut RowJournal<M>>,
 ) -> Result<StepReport> {
     let c = state.channels;
     if c == 0 {
@@ -319,14 +323,14 @@ const PREFETCH_ROWS: usize = 16;
 /// `first + i` of `grads`. With `saves`, the rows flagged new are written, as they are
 /// before this step, into the slots in order.
 #[allow(clippy::too_many_arguments)]
-fn step_chunk<G: RowGradients>(
+fn step_chunk<M: Moment, G: RowGradients>(
     chunk: &[i64],
     base: usize,
     p: &mut [f32],
-    m: &mut [f32],
-    v: &mut [f32],
+    m: &mut [M],
+    v: &mut [M],
     s: &mut [i32],
-    mut saves: Option<(&[bool], SaveSlots<'_>)>,
+    mut saves: Option<(&[bool], SaveSlots<'_, M>)>,
     grads: &G,
     first: usize,
     lr: &[f32],
@@ -344,9 +348,9 @@ fn step_chunk<G: RowGradients>(
     for (i, &row) in chunk.iter().enumerate() {
         if let Some(&ahead) = chunk.get(i + PREFETCH_ROWS) {
             let r = ahead as usize - base;
-            for table in [&*p, &*m, &*v] {
-                prefetch(&table[r * c..(r + 1) * c]);
-            }
+            prefetch(&p[r * c..(r + 1) * c]);
+            prefetch(&m[r * c..(r + 1) * c]);
+            prefetch(&v[r * c..(r + 1) * c]);
             prefetch(&s[r..r + 1]);
             grads.prefetch(first + i + PREFETCH_ROWS);
         }
@@ -380,10 +384,12 @@ fn step_chunk<G: RowGradients>(
         s[local] = t;
         let (p, m, v) = (&mut p[rows.clone()], &mut m[rows.clone()], &mut v[rows]);
         let finite = if small {
-            update_row_f32(p, m, v, g, lr, corrections.at(t), config)
+            let seed = row_seed(row as u64, t);
+            update_row_f32(p, m, v, g, lr, corrections.at(t), config, seed)
         } else {
             update_row_f64(p, m, v, g, lr, t, config);
-            p.iter().chain(m.iter()).chain(v.iter()).all(|x| x.is_finite())
+            let moments = m.iter().chain(v.iter()).map(|x| x.load());
+            p.iter().copied().chain(moments).all(f32::is_finite)
         };
         if !finite {
             report.non_finite_rows += 1;
@@ -433,15 +439,18 @@ impl<'a> BiasCorrections<'a> {
 }
 
 /// The common case, in f32 (vectorises), with the row's inverse bias corrections
-/// (see [`BiasCorrections`]).
-fn update_row_f32(
+/// (see [`BiasCorrections`]). The step uses the moments as computed; only their stored
+/// copies are rounded, the second stochastically with the bits `seed` gives.
+#[allow(clippy::too_many_arguments)]
+fn update_row_f32<M: Moment>(
     p: &mut [f32],
-    m: &mut [f32],
-    v: &mut [f32],
+    m: &mut [M],
+    v: &mut [M],
     g: &[f32],
     lr: &[f32],
     (inv_correction1, inv_sqrt_correction2): (f32, f32),
     config: &AdamConfig,
+    seed: u32,
 ) -> bool {
     // 1 − β in f64 first: 1 − 0.999f32 is off by 1.3e-5 relative in f32.
     let (b1, b2) = (config.beta1 as f32, config.beta2 as f32);
@@ -449,12 +458,13 @@ fn update_row_f32(
     let (eps, bound) = (config.eps as f32, config.step_bound() as f32);
     // |x| < ∞ is false for NaN and ±∞: the row's finiteness, in the update's own pass.
     let mut finite = true;
-    for ((((p, m), v), &g), &lr) in p.iter_mut().zip(m).zip(v).zip(g).zip(lr) {
-        let mi = b1 * *m + one_minus_b1 * g;
-        let vi = b2 * *v + one_minus_b2 * g * g;
+    let rows = p.iter_mut().zip(m).zip(v).zip(g).zip(lr).enumerate();
+    for (ch, ((((p, m), v), &g), &lr)) in rows {
+        let mi = b1 * m.load() + one_minus_b1 * g;
+        let vi = b2 * v.load() + one_minus_b2 * g * g;
         let step = (mi * inv_correction1) / (vi.sqrt() * inv_sqrt_correction2 + eps);
-        *m = mi;
-        *v = vi;
+        *m = M::round_nearest(mi);
+        *v = M::round_stochastic(vi, channel_random(seed, ch));
         *p -= step.clamp(-bound, bound) * lr;
         finite &= (mi.abs() < f32::INFINITY) & (vi < f32::INFINITY) & (p.abs() < f32::INFINITY);
     }
@@ -462,11 +472,12 @@ fn update_row_f32(
 }
 
 /// Rows with huge gradients, in f64 so g² cannot overflow; the second moment saturates
-/// at f32::MAX rather than becoming infinite.
-fn update_row_f64(
+/// at the largest finite moment rather than becoming infinite (both rounded to nearest:
+/// the path is rare, and a saturated `v` decays by more than a spacing a step).
+fn update_row_f64<M: Moment>(
     p: &mut [f32],
-    m: &mut [f32],
-    v: &mut [f32],
+    m: &mut [M],
+    v: &mut [M],
     g: &[f32],
     lr: &[f32],
     t: i32,
@@ -477,11 +488,11 @@ fn update_row_f64(
     let bound = config.step_bound();
     for ch in 0..g.len() {
         let gi = g[ch] as f64;
-        let mi = config.beta1 * m[ch] as f64 + (1.0 - config.beta1) * gi;
-        let vi = config.beta2 * v[ch] as f64 + (1.0 - config.beta2) * gi * gi;
+        let mi = config.beta1 * m[ch].load() as f64 + (1.0 - config.beta1) * gi;
+        let vi = config.beta2 * v[ch].load() as f64 + (1.0 - config.beta2) * gi * gi;
         let step = (mi / correction1) / ((vi / correction2).sqrt() + config.eps);
-        m[ch] = mi as f32;
-        v[ch] = vi.min(f32::MAX as f64) as f32;
+        m[ch] = M::round_nearest(mi as f32);
+        v[ch] = M::round_nearest(vi.min(M::MAX as f64) as f32);
         p[ch] = (p[ch] as f64 - step.clamp(-bound, bound) * lr[ch] as f64) as f32;
     }
 }
@@ -724,9 +735,15 @@ mod tests {
     /// Steps over many chunks of scattered rows, rows shared between steps, a rejected
     /// row among them: the journal saves each row once, in the order the steps first
     /// reached it, restores the table bit for bit, and tables and journal are the same on
-    /// 1, 2 and 5 threads.
+    /// 1, 2 and 5 threads — with either kind of moments (bfloat16's stochastic rounding
+    /// draws on the row and its count, not on the thread).
     #[test]
     fn a_journal_over_many_chunks_restores_bit_for_bit_on_any_thread_count() {
+        journal_over_many_chunks::<f32>();
+        journal_over_many_chunks::<Bf16>();
+    }
+
+    fn journal_over_many_chunks<M: Moment + PartialEq>() {
         use crate::testing::{on_threads, Rng};
         let (n, c) = (5000, 7);
         let mut rng = Rng::new(3);
@@ -746,9 +763,10 @@ mod tests {
             })
             .collect();
         let run = |threads: usize| {
-            let (mut p, mut m, mut v, mut s) = state(n, c);
+            let (mut p, _, _, mut s) = state(n, c);
+            let (mut m, mut v) = (vec![M::default(); n * c], vec![M::default(); n * c]);
             let before = (p.clone(), m.clone(), v.clone(), s.clone());
-            let mut journal = RowJournal::new(n, c);
+            let mut journal = RowJournal::<M>::new(n, c);
             let mut st = SparseAdamState {
                 param: &mut p,
                 exp_avg: &mut m,
