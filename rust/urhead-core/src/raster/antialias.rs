@@ -43,6 +43,13 @@ const GRADIENT_GUARD: f64 = 1e-3;
 pub const MAX_WALK: usize = 16;
 /// Bit of [`Scene::silhouette`] set when the triangle projects (no vertex behind `near`).
 const PROJECTS: u8 = 1 << 3;
+/// Side of the square pixel blocks [`Scene::near_silhouette`] marks.
+const BLOCK: usize = 8;
+/// How far (pixels, per axis) a pair's first pixel centre can lie from the silhouette edge
+/// point its blend crosses at: the crossing is within `1 + CROSSING_TOLERANCE` of the
+/// inside pixel's centre, itself at most one pixel from the first's; rounded up for the
+/// rounding of the crossing itself.
+const SILHOUETTE_REACH: f64 = 3.0;
 
 /// Gradients of [`antialias_backward`]; a field is `Some` exactly when it was asked for.
 #[derive(Debug, Clone, Default)]
@@ -85,6 +92,13 @@ struct Scene<'a, T> {
     /// Bit k set when edge k (opposite vertex k) of the triangle is a silhouette edge;
     /// [`PROJECTS`] set when the triangle is in front of the near plane.
     silhouette: Vec<u8>,
+    /// `(⌈H/BLOCK⌉, ⌈W/BLOCK⌉)`: whether a projected silhouette edge passes within
+    /// [`SILHOUETTE_REACH`] of the block. Every blend crosses a silhouette edge on its
+    /// segment, so pairs whose first pixel lies in an unmarked block are skipped without
+    /// a walk — most of a mesh's interior, where neighbouring pixels see different
+    /// triangles of one continuing surface; the decisions are the walk's own.
+    near_silhouette: Vec<bool>,
+    blocks_x: usize,
 }
 
 /// One antialiased pixel pair.
@@ -178,7 +192,7 @@ impl<'a, T: Real> AntialiasInputs<'a, T> {
         let cam = self.camera;
         let (cam_space, projected) = self.projection();
         let near = cam.near as f64;
-        let silhouette = self
+        let silhouette: Vec<u8> = self
             .faces
             .par_chunks(3)
             .zip(self.topology.par_chunks(3))
@@ -202,17 +216,69 @@ impl<'a, T: Real> AntialiasInputs<'a, T> {
                 mask
             })
             .collect();
+        let (width, height) = (cam.width as usize, cam.height as usize);
+        let (blocks_x, near_silhouette) =
+            mark_silhouette_blocks(width, height, self.faces, &projected, &silhouette);
         Scene {
-            width: cam.width as usize,
-            height: cam.height as usize,
+            width,
+            height,
             tri_id: self.tri_id,
             depth: self.depth,
             faces: self.faces,
             topology: self.topology,
             projected,
             silhouette,
+            near_silhouette,
+            blocks_x,
         }
     }
+}
+
+/// `(blocks per row, (⌈H/BLOCK⌉ × ⌈W/BLOCK⌉) marks)` of the pixel blocks within
+/// [`SILHOUETTE_REACH`] of a projected silhouette edge's bounding box.
+fn mark_silhouette_blocks(
+    width: usize,
+    height: usize,
+    faces: &[i32],
+    projected: &[[f64; 3]],
+    silhouette: &[u8],
+) -> (usize, Vec<bool>) {
+    let (blocks_x, blocks_y) = (width.div_ceil(BLOCK), height.div_ceil(BLOCK));
+    let mut marks = vec![false; blocks_x * blocks_y];
+    // Pixel (x, y) has its centre at (x + 0.5, y + 0.5); the pixels whose centre lies in
+    // [lo, hi] along an axis, clamped to the image, as a block range (None if empty).
+    let blocks = |lo: f64, hi: f64, size: usize| {
+        let first = (lo - 0.5).ceil().max(0.0);
+        let last = (hi - 0.5).floor().min(size as f64 - 1.0);
+        (first <= last).then(|| (first as usize / BLOCK, last as usize / BLOCK))
+    };
+    for (face, &mask) in faces.chunks_exact(3).zip(silhouette) {
+        if mask & PROJECTS == 0 || mask & !PROJECTS == 0 {
+            continue;
+        }
+        for k in (0..3).filter(|k| mask & (1 << k) != 0) {
+            let (a, b) = (
+                &projected[face[(k + 1) % 3] as usize],
+                &projected[face[(k + 2) % 3] as usize],
+            );
+            let (lo_x, hi_x) = (
+                a[0].min(b[0]) - SILHOUETTE_REACH,
+                a[0].max(b[0]) + SILHOUETTE_REACH,
+            );
+            let (lo_y, hi_y) = (
+                a[1].min(b[1]) - SILHOUETTE_REACH,
+                a[1].max(b[1]) + SILHOUETTE_REACH,
+            );
+            let (Some((x0, x1)), Some((y0, y1))) = (blocks(lo_x, hi_x, width), blocks(lo_y, hi_y, height))
+            else {
+                continue;
+            };
+            for row in marks[y0 * blocks_x..(y1 + 1) * blocks_x].chunks_exact_mut(blocks_x) {
+                row[x0..=x1].fill(true);
+            }
+        }
+    }
+    (blocks_x, marks)
 }
 
 /// The vertex of face `other` that is not on the edge it shares with `face` (the edge's
@@ -236,7 +302,11 @@ impl<T: Real> Scene<'_, T> {
         let (w, h) = (self.width, self.height);
         let mut out = Vec::new();
         for y in tile * TILE_ROWS..((tile + 1) * TILE_ROWS).min(h) {
+            let marks = &self.near_silhouette[(y / BLOCK) * self.blocks_x..][..self.blocks_x];
             for x in 0..w {
+                if !marks[x / BLOCK] {
+                    continue;
+                }
                 let p = y * w + x;
                 if x + 1 < w {
                     out.extend(self.blend(p, p + 1, x, y, false));
@@ -564,4 +634,81 @@ fn backward<T: Real>(
         camera_to_world_gradient(&v_cam, cam)
     });
     Ok(AntialiasGrads { v_color, v_verts })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::raster::{edge_topology, rasterize_forward};
+
+    /// A finely tessellated sphere in front of the camera, jittered or smooth.
+    fn sphere(n_lat: usize, n_lon: usize, jitter: f64) -> (Vec<f64>, Vec<i32>) {
+        let mut rng = crate::testing::Rng::new(5);
+        let mut verts = Vec::new();
+        for i in 0..=n_lat {
+            let theta = std::f64::consts::PI * i as f64 / n_lat as f64;
+            for j in 0..n_lon {
+                let phi = 2.0 * std::f64::consts::PI * j as f64 / n_lon as f64;
+                verts.push(theta.sin() * phi.cos() + rng.uniform(-jitter, jitter));
+                verts.push(theta.cos() + rng.uniform(-jitter, jitter));
+                verts.push(3.0 + theta.sin() * phi.sin() + rng.uniform(-jitter, jitter));
+            }
+        }
+        let mut faces = Vec::new();
+        for i in 0..n_lat {
+            for j in 0..n_lon {
+                let (a, b) = (i * n_lon + j, i * n_lon + (j + 1) % n_lon);
+                let (c, d) = ((i + 1) * n_lon + j, (i + 1) * n_lon + (j + 1) % n_lon);
+                faces.extend([a, c, b, b, c, d].map(|x| x as i32));
+            }
+        }
+        (verts, faces)
+    }
+
+    /// Skipping the pairs of blocks no silhouette edge reaches changes no decision: the
+    /// blends are those of a search of every pair, on a smooth sphere (silhouette only at
+    /// its outline: most blocks skipped) and a jittered one (folds all over it).
+    #[test]
+    fn skipping_blocks_far_from_silhouettes_keeps_every_blend() {
+        let k = [[90.0, 0.0, 60.3], [0.0, 92.0, 57.6], [0.0, 0.0, 1.0]];
+        let view = [
+            [1.0, 0.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0, 0.0],
+            [0.0, 0.0, 1.0, 0.0],
+            [0.0, 0.0, 0.0, 1.0],
+        ];
+        let cam = Camera::new(k, view, 120, 112, 0.01, 100.0).unwrap();
+        for (jitter, most_skipped) in [(0.0, true), (0.01, false)] {
+            let (verts, faces) = sphere(40, 60, jitter);
+            let topology = edge_topology(&faces, verts.len() / 3).unwrap();
+            let raster = rasterize_forward(&verts, &faces, &cam).unwrap();
+            let color = vec![0.5f64; 120 * 112];
+            let inputs = AntialiasInputs {
+                color: &color,
+                channels: 1,
+                tri_id: &raster.tri_id,
+                depth: &raster.depth,
+                verts: &verts,
+                faces: &faces,
+                topology: &topology,
+                camera: &cam,
+            };
+            let mut scene = inputs.scene();
+            let skipped = scene.near_silhouette.iter().filter(|&&m| !m).count();
+            let blends = scene.all_blends();
+            scene.near_silhouette.fill(true);
+            let searched = scene.all_blends();
+            assert_eq!(blends, searched, "jitter {jitter}");
+            assert!(
+                blends.iter().map(Vec::len).sum::<usize>() > 100,
+                "jitter {jitter}"
+            );
+            if most_skipped {
+                assert!(
+                    2 * skipped > scene.near_silhouette.len(),
+                    "{skipped} blocks skipped"
+                );
+            }
+        }
+    }
 }
