@@ -250,7 +250,7 @@ fn mark_silhouette_blocks(
     let blocks = |lo: f64, hi: f64, size: usize| {
         let first = (lo - 0.5).ceil().max(0.0);
         let last = (hi - 0.5).floor().min(size as f64 - 1.0);
-        (first <= last).then(|| (first as usize / BLOCK, last as usize / BLOCK))
+        (first <= last).then_some((first as usize / BLOCK, last as usize / BLOCK))
     };
     for (face, &mask) in faces.chunks_exact(3).zip(silhouette) {
         if mask & PROJECTS == 0 || mask & !PROJECTS == 0 {
