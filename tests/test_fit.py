@@ -244,6 +244,37 @@ def test_resume_with_other_settings_is_refused(subject_dir, fitted, tmp_path, ca
     assert not (tmp_path / "avatar").exists()
 
 
+def test_a_fit_resumes_with_its_moments_stored_the_other_way(subject_dir, head, tmp_path):
+    """``map_moments`` is storage, not model: a checkpoint with float32 moments resumes
+    into a bfloat16 fit (moments rounded to nearest, the rest as saved) and back."""
+    config = replace(SMALL_FIT, map_moments="float32")
+    trainer = Trainer(load_subject(subject_dir), head, config, tmp_path, progress=False)
+    state = trainer.start()
+    for _ in range(4):
+        trainer.step(state)
+    state.guard.settle(state.iteration)
+    save_checkpoint(tmp_path, state.avatar, trainer._checkpoint_state(state))
+    saved = torch.load(find_checkpoint(tmp_path) / "state.pt", weights_only=True)
+    saved_moments = saved["maps_opt"]["state"][0]
+    assert saved_moments["exp_avg_sq"].dtype == torch.float32
+    for kind, dtype in (("bfloat16", torch.bfloat16), ("float32", torch.float32)):
+        resumed = replace(config, map_moments=kind)
+        state = Trainer(load_subject(subject_dir), head, resumed, tmp_path, progress=False).start(
+            resume=True
+        )
+        assert state.iteration == saved["iteration"] == 4
+        moments = state.maps_opt.state[state.avatar.maps]
+        for name in ("exp_avg", "exp_avg_sq"):
+            assert moments[name].dtype == dtype
+            assert torch.equal(moments[name], saved_moments[name].to(dtype))
+    # A checkpoint from before the field existed (its config has no map_moments) resumes.
+    older = trainer._checkpoint_state(state)
+    del older["config"]["map_moments"]
+    save_checkpoint(tmp_path, state.avatar, older)
+    resumed = Trainer(load_subject(subject_dir), head, SMALL_FIT, tmp_path, progress=False)
+    assert resumed.start(resume=True).iteration == 4
+
+
 def test_mesh_only_fit_has_no_gaussian_state(subject_dir, head, tmp_path, caplog):
     config = replace(SMALL_FIT, iterations=6, gaussians=False, normal_loss=False)
     with caplog.at_level("INFO", logger="urhead.fit"):

@@ -80,6 +80,10 @@ def from_arguments(
     return replace(config, **explicit)
 
 
+RESUMABLE_CHANGES = ("map_moments",)
+"""FitConfig fields a resumed fit may set differently from its checkpoint: how state is
+stored, not what is fitted (moments saved in either precision load into either)."""
+
 KEEPABLE_PARTS = ("mouth", "eyes")
 """The model parts a fit leaves out when its scene analysis finds the scene lacks them
 (:mod:`urhead.train.scene`), and ``--keep`` forces back."""

@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 
 from urhead._atomic import write_bytes_atomically
-from urhead.config import FitConfig
+from urhead.config import RESUMABLE_CHANGES, FitConfig
 from urhead.data.background import subject_background
 from urhead.eval import RefineSettings, evaluate_frames
 from urhead.eval.per_frame import FLAME_PARAMETERS, METRIC_REGION
@@ -261,7 +261,7 @@ class Trainer:
         checkpoint = find_checkpoint(self.out) if resume else None
         if checkpoint is not None:
             avatar, saved = load_checkpoint(checkpoint)
-            if saved["config"] != asdict(c):
+            if _fitted_settings(saved["config"]) != _fitted_settings(asdict(c)):
                 raise ValueError(
                     f"{checkpoint}: was written with a different configuration; "
                     "resume with the same options or start a new --out"
@@ -508,3 +508,10 @@ def _progress(total: int, initial: int, enabled: bool, desc: str = "fit"):
 
     unit = "it" if desc == "fit" else "frame"
     return progress(total, desc, unit, enabled=enabled, initial=initial)
+
+
+def _fitted_settings(config: dict) -> dict:
+    """A config (as saved) without the fields a resume may change
+    (:data:`urhead.config.RESUMABLE_CHANGES`); a checkpoint from before such a field
+    existed compares equal too."""
+    return {k: v for k, v in config.items() if k not in RESUMABLE_CHANGES}
