@@ -177,3 +177,27 @@ pub fn on_threads<R: Send>(threads: usize, f: impl FnOnce() -> R + Send) -> R {
         .expect("a rayon pool for the test")
         .install(f)
 }
+
+/// A jittered latitude–longitude sphere of radius 1 centred at (0, 0, 3): (verts, faces).
+pub fn sphere(n_lat: usize, n_lon: usize, jitter: f64, seed: u64) -> (Vec<f64>, Vec<i32>) {
+    let mut rng = Rng::new(seed);
+    let mut verts = Vec::new();
+    for i in 0..=n_lat {
+        let theta = std::f64::consts::PI * i as f64 / n_lat as f64;
+        for j in 0..n_lon {
+            let phi = 2.0 * std::f64::consts::PI * j as f64 / n_lon as f64;
+            verts.push(theta.sin() * phi.cos() + rng.uniform(-jitter, jitter));
+            verts.push(theta.cos() + rng.uniform(-jitter, jitter));
+            verts.push(3.0 + theta.sin() * phi.sin() + rng.uniform(-jitter, jitter));
+        }
+    }
+    let mut faces = Vec::new();
+    for i in 0..n_lat {
+        for j in 0..n_lon {
+            let (a, b) = (i * n_lon + j, i * n_lon + (j + 1) % n_lon);
+            let (c, d) = ((i + 1) * n_lon + j, (i + 1) * n_lon + (j + 1) % n_lon);
+            faces.extend([a, c, b, b, c, d].map(|x| x as i32));
+        }
+    }
+    (verts, faces)
+}

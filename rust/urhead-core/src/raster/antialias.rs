@@ -640,30 +640,7 @@ fn backward<T: Real>(
 mod tests {
     use super::*;
     use crate::raster::{edge_topology, rasterize_forward};
-
-    /// A finely tessellated sphere in front of the camera, jittered or smooth.
-    fn sphere(n_lat: usize, n_lon: usize, jitter: f64) -> (Vec<f64>, Vec<i32>) {
-        let mut rng = crate::testing::Rng::new(5);
-        let mut verts = Vec::new();
-        for i in 0..=n_lat {
-            let theta = std::f64::consts::PI * i as f64 / n_lat as f64;
-            for j in 0..n_lon {
-                let phi = 2.0 * std::f64::consts::PI * j as f64 / n_lon as f64;
-                verts.push(theta.sin() * phi.cos() + rng.uniform(-jitter, jitter));
-                verts.push(theta.cos() + rng.uniform(-jitter, jitter));
-                verts.push(3.0 + theta.sin() * phi.sin() + rng.uniform(-jitter, jitter));
-            }
-        }
-        let mut faces = Vec::new();
-        for i in 0..n_lat {
-            for j in 0..n_lon {
-                let (a, b) = (i * n_lon + j, i * n_lon + (j + 1) % n_lon);
-                let (c, d) = ((i + 1) * n_lon + j, (i + 1) * n_lon + (j + 1) % n_lon);
-                faces.extend([a, c, b, b, c, d].map(|x| x as i32));
-            }
-        }
-        (verts, faces)
-    }
+    use crate::testing::sphere;
 
     /// Skipping the pairs of blocks no silhouette edge reaches changes no decision: the
     /// blends are those of a search of every pair, on a smooth sphere (silhouette only at
@@ -679,7 +656,7 @@ mod tests {
         ];
         let cam = Camera::new(k, view, 120, 112, 0.01, 100.0).unwrap();
         for (jitter, most_skipped) in [(0.0, true), (0.01, false)] {
-            let (verts, faces) = sphere(40, 60, jitter);
+            let (verts, faces) = sphere(40, 60, jitter, 5);
             let topology = edge_topology(&faces, verts.len() / 3).unwrap();
             let raster = rasterize_forward(&verts, &faces, &cam).unwrap();
             let color = vec![0.5f64; 120 * 112];
