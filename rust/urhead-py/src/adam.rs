@@ -76,8 +76,15 @@ impl RowJournal {
         mut steps: PyReadwriteArrayDyn<'_, i32>,
     ) -> PyResult<()> {
         let channels = param.shape().last().copied().unwrap_or(0);
-        let state = adam_state(&mut param, &mut exp_avg, &mut exp_avg_sq, &mut steps, channels)?;
-        match state.with_journal(Some(self))? {
+        let state = adam_state(
+            &mut param,
+            &mut exp_avg,
+            &mut exp_avg_sq,
+            &mut steps,
+            channels,
+            Some(self),
+        )?;
+        match state {
             Typed::F32(mut state, Some(j)) => j.restore(&mut state),
             Typed::Bf16(mut state, Some(j)) => j.restore(&mut state),
             _ => unreachable!("a journal was given"),
@@ -86,63 +93,61 @@ impl RowJournal {
     }
 }
 
-/// The optimiser's tables as the core's state, its moments of either kind.
-enum AdamState<'a> {
-    F32(SparseAdamState<'a, f32>),
-    Bf16(SparseAdamState<'a, Bf16>),
-}
-
-/// A state with a journal of the same moment kind.
+/// The optimiser's tables as the core's state, its moments of either kind, with the
+/// journal (if any) of the same kind.
 enum Typed<'a> {
     F32(SparseAdamState<'a, f32>, Option<&'a mut CoreJournal<f32>>),
     Bf16(SparseAdamState<'a, Bf16>, Option<&'a mut CoreJournal<Bf16>>),
 }
 
-impl<'a> AdamState<'a> {
-    /// Pairs the state with `journal`, which must keep the same kind of moments.
-    fn with_journal(self, journal: Option<&'a mut RowJournal>) -> PyResult<Typed<'a>> {
-        match (self, journal.map(|j| &mut j.journal)) {
-            (AdamState::F32(s), None) => Ok(Typed::F32(s, None)),
-            (AdamState::Bf16(s), None) => Ok(Typed::Bf16(s, None)),
-            (AdamState::F32(s), Some(Journal::F32(j))) => Ok(Typed::F32(s, Some(j))),
-            (AdamState::Bf16(s), Some(Journal::Bf16(j))) => Ok(Typed::Bf16(s, Some(j))),
-            (state, Some(_)) => {
-                let kind = match state {
-                    AdamState::F32(_) => "float32",
-                    AdamState::Bf16(_) => "bfloat16",
-                };
-                Err(InvalidArgumentError::new_err(format!(
-                    "journal keeps moments of the other kind than the {kind} moments given"
-                )))
-            }
-        }
-    }
-}
-
-/// The optimiser's tables as the core's state with `channels` per row.
+/// The optimiser's tables as the core's state with `channels` per row, paired with
+/// `journal`, which must keep the same kind of moments.
 fn adam_state<'a>(
     param: &'a mut PyReadwriteArrayDyn<'_, f32>,
     exp_avg: &'a mut MomentTable<'_>,
     exp_avg_sq: &'a mut MomentTable<'_>,
     steps: &'a mut PyReadwriteArrayDyn<'_, i32>,
     channels: usize,
-) -> PyResult<AdamState<'a>> {
+    journal: Option<&'a mut RowJournal>,
+) -> PyResult<Typed<'a>> {
     let (param, steps) = (data_mut(param, "param")?, data_mut(steps, "steps")?);
+    let journal = journal.map(|j| &mut j.journal);
+    let other_kind = |kind: &str| {
+        InvalidArgumentError::new_err(format!(
+            "journal keeps moments of the other kind than the {kind} moments given"
+        ))
+    };
     match (exp_avg, exp_avg_sq) {
-        (MomentTable::F32(m), MomentTable::F32(v)) => Ok(AdamState::F32(SparseAdamState {
-            param,
-            exp_avg: data_mut(m, "exp_avg")?,
-            exp_avg_sq: data_mut(v, "exp_avg_sq")?,
-            steps,
-            channels,
-        })),
-        (MomentTable::Bf16(m), MomentTable::Bf16(v)) => Ok(AdamState::Bf16(SparseAdamState {
-            param,
-            exp_avg: Bf16::from_bits_mut(data_mut(m, "exp_avg")?),
-            exp_avg_sq: Bf16::from_bits_mut(data_mut(v, "exp_avg_sq")?),
-            steps,
-            channels,
-        })),
+        (MomentTable::F32(m), MomentTable::F32(v)) => {
+            let journal = match journal {
+                None => None,
+                Some(Journal::F32(j)) => Some(j),
+                Some(Journal::Bf16(_)) => return Err(other_kind("float32")),
+            };
+            let state = SparseAdamState {
+                param,
+                exp_avg: data_mut(m, "exp_avg")?,
+                exp_avg_sq: data_mut(v, "exp_avg_sq")?,
+                steps,
+                channels,
+            };
+            Ok(Typed::F32(state, journal))
+        }
+        (MomentTable::Bf16(m), MomentTable::Bf16(v)) => {
+            let journal = match journal {
+                None => None,
+                Some(Journal::Bf16(j)) => Some(j),
+                Some(Journal::F32(_)) => return Err(other_kind("bfloat16")),
+            };
+            let state = SparseAdamState {
+                param,
+                exp_avg: Bf16::from_bits_mut(data_mut(m, "exp_avg")?),
+                exp_avg_sq: Bf16::from_bits_mut(data_mut(v, "exp_avg_sq")?),
+                steps,
+                channels,
+            };
+            Ok(Typed::Bf16(state, journal))
+        }
         _ => Err(InvalidArgumentError::new_err(
             "exp_avg and exp_avg_sq must both be float32 or both bfloat16 (as uint16)",
         )),
@@ -172,8 +177,14 @@ pub fn sparse_adam_step<'py>(
     mut journal: Option<PyRefMut<'_, RowJournal>>,
 ) -> PyResult<(usize, usize, Bound<'py, PyArrayDyn<f32>>)> {
     let channels = lr.len();
-    let state = adam_state(&mut param, &mut exp_avg, &mut exp_avg_sq, &mut steps, channels)?;
-    let typed = state.with_journal(journal.as_deref_mut())?;
+    let typed = adam_state(
+        &mut param,
+        &mut exp_avg,
+        &mut exp_avg_sq,
+        &mut steps,
+        channels,
+        journal.as_deref_mut(),
+    )?;
     let (rows, grads) = (data(&rows, "rows")?, data(&grads, "grads")?);
     let settings = Settings::new(&lr, beta1, beta2, eps, num_threads)?;
     settings.run(py, channels, |lr, config| match typed {
@@ -210,8 +221,14 @@ pub fn sparse_adam_step_sampled<'py>(
             param.shape()
         )));
     };
-    let state = adam_state(&mut param, &mut exp_avg, &mut exp_avg_sq, &mut steps, channels)?;
-    let typed = state.with_journal(journal.as_deref_mut())?;
+    let typed = adam_state(
+        &mut param,
+        &mut exp_avg,
+        &mut exp_avg_sq,
+        &mut steps,
+        channels,
+        journal.as_deref_mut(),
+    )?;
     let segments = segments
         .iter()
         .map(|(uv, v_out)| {

@@ -530,8 +530,17 @@ pub fn antialias_backward<T: Real>(
     need_verts: bool,
 ) -> Result<AntialiasGrads<T>> {
     let dims = inputs.validate()?;
-    let blends = SilhouetteBlends(inputs.scene().all_blends().into_iter().flatten().collect());
-    backward(inputs, dims, v_out, need_color, need_verts, &blends)
+    let scene = inputs.scene();
+    let blends = SilhouetteBlends(scene.all_blends().into_iter().flatten().collect());
+    backward(
+        inputs,
+        dims,
+        &scene.projected,
+        v_out,
+        need_color,
+        need_verts,
+        &blends,
+    )
 }
 
 /// [`antialias_backward`] with the `blends` its forward made on the same inputs
@@ -545,20 +554,22 @@ pub fn antialias_backward_blends<T: Real>(
     blends: &SilhouetteBlends,
 ) -> Result<AntialiasGrads<T>> {
     let dims = inputs.validate()?;
-    backward(inputs, dims, v_out, need_color, need_verts, blends)
+    let (_, projected) = inputs.projection();
+    backward(inputs, dims, &projected, v_out, need_color, need_verts, blends)
 }
 
-/// Both backward entry points after validating `inputs` (image `(w, h, c)`).
+/// Both backward entry points after validating `inputs` (image `(w, h, c)`), with the
+/// vertices' `projected` positions ([`AntialiasInputs::projection`]).
 fn backward<T: Real>(
     inputs: &AntialiasInputs<T>,
     (w, h, c): (usize, usize, usize),
+    projected: &[[f64; 3]],
     v_out: &[T],
     need_color: bool,
     need_verts: bool,
     blends: &SilhouetteBlends,
 ) -> Result<AntialiasGrads<T>> {
     check_len("v_out", v_out, h * w * c, &format!("(H, W, C) = ({h}, {w}, {c})"))?;
-    let (_, projected) = inputs.projection();
     let num_verts = inputs.verts.len() / 3;
     if let Some(b) = blends
         .0
