@@ -6,7 +6,10 @@ pages nearly every such access misses the TLB; on 2 MiB pages it does not (textu
 and a whole training step both get markedly faster, docs/benchmarks.md). Torch's allocator
 gives 4 KiB pages unless the system enables THP for everything, so these tensors are
 allocated by urhead's native module instead: fresh zero pages advised with
-``madvise(MADV_HUGEPAGE)`` before anything touches them. Only advice: on other systems, or
+``madvise(MADV_HUGEPAGE)`` before anything touches them, then made resident by a
+first write (a table read before it is written, as an Adam moment is, would otherwise map
+the shared huge zero page and, under memory pressure, fall back to 4 KiB pages on the
+copy). Only advice: on other systems, or
 where THP is off (``/sys/kernel/mm/transparent_hugepage/enabled`` says ``never``), they are
 ordinary memory, and the tensors behave as any CPU tensor does. A table below glibc's mmap
 threshold (at most 32 MiB) may reuse heap memory already on 4 KiB pages; the tables this

@@ -58,6 +58,28 @@ pub fn zeroed<T: ZeroBits>(what: &'static str, len: usize) -> Result<Vec<T>> {
     Ok(buf)
 }
 
+/// [`zeroed`] for a long-lived table, its advised huge pages made resident by a first
+/// write each. A table that is read before it is written (an Adam moment: the step reads a
+/// row, then writes it) would otherwise first map the kernel's shared huge zero page and
+/// copy it on the write, a fault that under memory pressure falls back to 4 KiB pages where
+/// a first write still compacts for a huge one (seen in CI: a stepped moment with none
+/// beside a write-first table with all of its 2 MiB pages). The table is resident at once:
+/// meant for tables a fit touches nearly everywhere anyway.
+pub fn zeroed_resident<T: ZeroBits>(what: &'static str, len: usize) -> Result<Vec<T>> {
+    let mut buf: Vec<T> = zeroed(what, len)?;
+    if std::mem::size_of_val(&buf[..]) >= HUGE_PAGE_THRESHOLD {
+        let base = buf.as_mut_ptr().cast::<u8>();
+        let bytes = std::mem::size_of_val(&buf[..]);
+        let first = (base as usize).next_multiple_of(HUGE_PAGE) - base as usize;
+        for offset in (first..bytes).step_by(HUGE_PAGE) {
+            // SAFETY: `offset < bytes`, inside the buffer; it is zero already, and a
+            // volatile write of zero keeps it so while making the kernel fault the page in.
+            unsafe { base.add(offset).write_volatile(0) };
+        }
+    }
+    Ok(buf)
+}
+
 /// `len` copies of `value` named `what`, reserved with `try_reserve_exact`:
 /// `Err(OutOfMemory)` instead of an abort when the allocator refuses. For fill values other
 /// than zero; zeros should come from [`zeroed`].
@@ -139,6 +161,15 @@ mod tests {
     fn zeroed_buffers_are_zero_whatever_their_size() {
         for len in [0usize, 7, 3 << 20] {
             let v: Vec<f32> = zeroed("test buffer", len).unwrap();
+            assert_eq!(v.len(), len);
+            assert!(v.iter().all(|&x| x == 0.0));
+        }
+    }
+
+    #[test]
+    fn resident_zeroed_buffers_are_zero_whatever_their_size() {
+        for len in [0usize, 7, 3 << 20, (9 << 20) + 5] {
+            let v: Vec<f32> = zeroed_resident("test buffer", len).unwrap();
             assert_eq!(v.len(), len);
             assert!(v.iter().all(|&x| x == 0.0));
         }
