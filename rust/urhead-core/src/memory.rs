@@ -58,24 +58,30 @@ pub fn zeroed<T: ZeroBits>(what: &'static str, len: usize) -> Result<Vec<T>> {
     Ok(buf)
 }
 
-/// [`zeroed`] for a long-lived table, its advised huge pages made resident by a first
-/// write each. A table that is read before it is written (an Adam moment: the step reads a
-/// row, then writes it) would otherwise first map the kernel's shared huge zero page and
-/// copy it on the write, a fault that under memory pressure falls back to 4 KiB pages where
-/// a first write still compacts for a huge one (seen in CI: a stepped moment with none
-/// beside a write-first table with all of its 2 MiB pages). The table is resident at once:
-/// meant for tables a fit touches nearly everywhere anyway.
+/// [`zeroed`] for a long-lived table, on fresh huge pages made resident by a first write
+/// each. Two ways a table would otherwise miss them:
+/// - its memory can be reused heap memory already backed by 4 KiB pages (with the command
+///   line's `keep_freed_memory`, glibc serves even a 64 MiB block from the freed heap): the
+///   advised whole 2 MiB pages are given back first (`MADV_DONTNEED`; they read as zeros
+///   again), so they are faulted afresh;
+/// - a table read before it is written (an Adam moment: the step reads a row, then writes
+///   it) would first map the kernel's shared huge zero page and copy it on the write, a
+///   fault that under memory pressure falls back to 4 KiB pages where a first write still
+///   compacts for a huge page.
+///
+/// The table is resident at once: meant for tables a fit touches nearly everywhere anyway.
 pub fn zeroed_resident<T: ZeroBits>(what: &'static str, len: usize) -> Result<Vec<T>> {
     let mut buf: Vec<T> = zeroed(what, len)?;
-    if std::mem::size_of_val(&buf[..]) >= HUGE_PAGE_THRESHOLD {
-        let base = buf.as_mut_ptr().cast::<u8>();
-        let bytes = std::mem::size_of_val(&buf[..]);
-        let first = (base as usize).next_multiple_of(HUGE_PAGE) - base as usize;
-        for offset in (first..bytes).step_by(HUGE_PAGE) {
-            // SAFETY: `offset < bytes`, inside the buffer; it is zero already, and a
-            // volatile write of zero keeps it so while making the kernel fault the page in.
-            unsafe { base.add(offset).write_volatile(0) };
-        }
+    let Some((start, end)) = huge_page_range(&buf) else {
+        return Ok(buf);
+    };
+    discard_pages(start, end - start);
+    let base = buf.as_mut_ptr().cast::<u8>();
+    for offset in (start - base as usize..end - base as usize).step_by(HUGE_PAGE) {
+        // SAFETY: `offset` lies inside the buffer; the byte reads as zero (calloc, or a
+        // discarded page), and a volatile write of zero keeps it so while making the kernel
+        // fault the page in.
+        unsafe { base.add(offset).write_volatile(0) };
     }
     Ok(buf)
 }
@@ -107,15 +113,21 @@ pub fn refill<T: Clone>(buf: &mut Vec<T>, what: &'static str, len: usize, value:
 /// Asks the kernel to back the whole 2 MiB pages inside `buf` with huge pages. Only
 /// advice: a no-op for small buffers, on other systems, or if the kernel declines.
 pub fn advise_huge_pages<T>(buf: &[T]) {
+    if let Some((start, end)) = huge_page_range(buf) {
+        madvise_huge(start, end - start);
+    }
+}
+
+/// The address range of the whole 2 MiB pages inside `buf`, for buffers large enough to
+/// advise; None otherwise.
+fn huge_page_range<T>(buf: &[T]) -> Option<(usize, usize)> {
     let bytes = std::mem::size_of_val(buf);
     if bytes < HUGE_PAGE_THRESHOLD {
-        return;
+        return None;
     }
     let start = (buf.as_ptr() as usize).next_multiple_of(HUGE_PAGE);
     let end = (buf.as_ptr() as usize + bytes) / HUGE_PAGE * HUGE_PAGE;
-    if end > start {
-        madvise_huge(start, end - start);
-    }
+    (end > start).then_some((start, end))
 }
 
 #[cfg(target_os = "linux")]
@@ -130,6 +142,20 @@ fn madvise_huge(start: usize, len: usize) {
 
 #[cfg(not(target_os = "linux"))]
 fn madvise_huge(_start: usize, _len: usize) {}
+
+#[cfg(target_os = "linux")]
+fn discard_pages(start: usize, len: usize) {
+    // SAFETY: the range lies inside one live allocation owned by the caller, holding only
+    // zeros, in private anonymous memory (glibc's heap or its mmapped blocks): after
+    // MADV_DONTNEED its pages read as zeros again, so the contents do not change. Its
+    // failure is harmless (the pages stay as they were).
+    unsafe {
+        libc::madvise(start as *mut libc::c_void, len, libc::MADV_DONTNEED);
+    }
+}
+
+#[cfg(not(target_os = "linux"))]
+fn discard_pages(_start: usize, _len: usize) {}
 
 /// Hints the CPU to start loading the cache lines of `data` (random-access kernels issue
 /// it a few items ahead, so several memory reads overlap).
@@ -169,6 +195,8 @@ mod tests {
     #[test]
     fn resident_zeroed_buffers_are_zero_whatever_their_size() {
         for len in [0usize, 7, 3 << 20, (9 << 20) + 5] {
+            // Memory freed dirty just before may be handed out again: still all zeros.
+            drop(vec![1.5f32; len]);
             let v: Vec<f32> = zeroed_resident("test buffer", len).unwrap();
             assert_eq!(v.len(), len);
             assert!(v.iter().all(|&x| x == 0.0));
