@@ -1,6 +1,8 @@
 //! Typed errors shared by every kernel. Each variant names the offending argument so the
 //! Python binding can raise a specific exception with a message a user can act on.
 
+use rayon::prelude::*;
+
 /// What can be wrong with a kernel's inputs. Checked before any work is done.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum Error {
@@ -65,7 +67,8 @@ pub fn check_len<T>(arg: &'static str, data: &[T], expected_len: usize, expected
 
 /// `Err(NonFinite)` naming the first NaN or infinity in `data`.
 pub fn check_finite<T: crate::Real>(arg: &'static str, data: &[T]) -> Result<()> {
-    match data.iter().position(|x| !x.is_finite()) {
+    // x·0 ≠ 0 exactly for NaN and ±inf; as a branch-free test it vectorises.
+    match first_where(data, |&x| x * T::zero() != T::zero()) {
         None => Ok(()),
         Some(index) => Err(Error::NonFinite {
             arg,
@@ -76,8 +79,13 @@ pub fn check_finite<T: crate::Real>(arg: &'static str, data: &[T]) -> Result<()>
 }
 
 /// `Err(IndexOutOfRange)` naming the first index outside `[low, high)`.
-pub fn check_indices<I: Copy + Into<i64>>(arg: &'static str, data: &[I], low: i64, high: i64) -> Result<()> {
-    match data.iter().position(|&i| i.into() < low || i.into() >= high) {
+pub fn check_indices<I: Copy + Into<i64> + Sync>(
+    arg: &'static str,
+    data: &[I],
+    low: i64,
+    high: i64,
+) -> Result<()> {
+    match first_where(data, |&i| (i.into() < low) | (i.into() >= high)) {
         None => Ok(()),
         Some(index) => Err(Error::IndexOutOfRange {
             arg,
@@ -87,6 +95,24 @@ pub fn check_indices<I: Copy + Into<i64>>(arg: &'static str, data: &[I], low: i6
             high,
         }),
     }
+}
+
+/// Elements per block of [`first_where`]'s scan.
+const SCAN_BLOCK: usize = 16_384;
+
+/// The index of the first element for which `bad` holds. Inputs are checked on every
+/// kernel call, so the scan is made cheap: a block is reduced without an early exit (a
+/// branch-free `bad` then vectorises; an early-exit search runs an element a cycle), blocks
+/// in parallel on large inputs, and only the first bad block is searched element by element.
+fn first_where<T: Sync>(data: &[T], bad: impl Fn(&T) -> bool + Sync) -> Option<usize> {
+    let any_bad = |block: &[T]| block.iter().fold(false, |found, x| found | bad(x));
+    let block = if data.len() > 4 * SCAN_BLOCK {
+        data.par_chunks(SCAN_BLOCK).position_first(any_bad)
+    } else {
+        data.chunks(SCAN_BLOCK).position(any_bad)
+    }?;
+    let start = block * SCAN_BLOCK;
+    data[start..].iter().position(bad).map(|i| start + i)
 }
 
 /// Product of `dims` with overflow and limit checks, for allocation sizes.
@@ -100,5 +126,79 @@ pub fn checked_size(what: &'static str, dims: &[usize], limit: usize) -> Result<
         })
     } else {
         Ok(requested as usize)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Lengths on both sides of the block size and of the parallel threshold.
+    const LENGTHS: [usize; 6] = [0, 1, 100, SCAN_BLOCK + 1, 4 * SCAN_BLOCK + 7, 9 * SCAN_BLOCK + 3];
+
+    #[test]
+    fn check_finite_names_the_first_non_finite_element() {
+        for len in LENGTHS {
+            let mut data = vec![1.5f32; len];
+            assert_eq!(check_finite("x", &data), Ok(()));
+            // Bad values in several blocks, the earliest at every kind of position.
+            for first in [0, len / 3, len.saturating_sub(1)]
+                .into_iter()
+                .filter(|_| len > 0)
+            {
+                data.fill(-2.0);
+                data[first] = f32::NAN;
+                for later in [first + 1, first + SCAN_BLOCK, len - 1] {
+                    if later > first && later < len {
+                        data[later] = f32::INFINITY;
+                    }
+                }
+                match check_finite("x", &data) {
+                    Err(Error::NonFinite { arg, index, value }) => {
+                        assert_eq!((arg, index), ("x", first), "len {len}");
+                        assert!(value.is_nan());
+                    }
+                    other => panic!("len {len}, NaN at {first}: {other:?}"),
+                }
+            }
+        }
+        let mut data = vec![0.0f64; 5 * SCAN_BLOCK];
+        data[3 * SCAN_BLOCK + 5] = f64::NEG_INFINITY;
+        assert!(matches!(
+            check_finite("y", &data),
+            Err(Error::NonFinite { index, value, .. }) if index == 3 * SCAN_BLOCK + 5 && value == f64::NEG_INFINITY
+        ));
+        // Subnormals, signed zeros and the extremes are finite.
+        let edge = [f32::MIN_POSITIVE / 2.0, -0.0, f32::MAX, f32::MIN];
+        assert_eq!(check_finite("z", &edge), Ok(()));
+    }
+
+    #[test]
+    fn check_indices_names_the_first_index_out_of_range() {
+        for len in LENGTHS {
+            let mut data: Vec<i64> = (0..len as i64).map(|i| i % 7 - 1).collect();
+            assert_eq!(check_indices("i", &data, -1, 6), Ok(()));
+            if len < 2 {
+                continue;
+            }
+            let first = len / 2;
+            data[first] = 6; // one past the end
+            data[len - 1] = -2; // below the start, later
+            assert_eq!(
+                check_indices("i", &data, -1, 6),
+                Err(Error::IndexOutOfRange {
+                    arg: "i",
+                    index: first,
+                    value: 6,
+                    low: -1,
+                    high: 6
+                })
+            );
+        }
+        let small: Vec<i32> = vec![0, 1, i32::MIN];
+        assert!(matches!(
+            check_indices("j", &small, 0, 2),
+            Err(Error::IndexOutOfRange { index: 2, value, .. }) if value == i32::MIN as i64
+        ));
     }
 }
