@@ -26,12 +26,14 @@ from urhead.ops import (
     antialias,
     antialias_topology,
     composite,
+    covered_pixels,
     interpolate,
     lbs,
     lift_gaussians_geometry,
     rasterize,
     rasterize_gaussians,
     rotate_normalize,
+    scatter_pixels,
     sh_shade,
     sh_texture,
     texture,
@@ -319,7 +321,7 @@ class Avatar:
         layout = self.layout
         raster = rasterize(displaced, t.faces, camera)
         h, w = camera.height, camera.width
-        pixels = (raster.tri_id.reshape(-1) >= 0).nonzero()[:, 0]
+        pixels = covered_pixels(raster.tri_id)
         # At the covered pixels only: no (H, W, C) images, nor their gradients, to index.
         uv = interpolate(t.uv_coords, raster, t.uv_faces, pixels)
         # The skinning rotations in camera axes (per vertex, before interpolating them):
@@ -343,11 +345,11 @@ class Avatar:
             first = 3 + layout.shading_maps.start - extra.start
             world = torch.einsum("ji,pjk->pik", view, rotation)  # Vᵀ·(V·R)
             rgb = _shading_gain(rgb, pixel_maps[:, first : first + SHADING_FEATURES], world)
-        # The covered pixels (alpha 1) over the background (alpha 0), written into one
-        # fresh image in place (out of place, index_put copies the 4 MB image again).
-        flat = torch.cat([self.background, self.background.new_zeros(1)]).repeat(h * w, 1)
-        flat.index_put_((pixels,), torch.cat([rgb, rgb.new_ones(rgb.shape[0], 1)], 1))
-        shaded = antialias(flat.reshape(h, w, 4), raster, displaced, t.faces, camera, t.topology)
+        # The covered pixels (alpha 1) over the background (alpha 0).
+        rgba = torch.cat([rgb, rgb.new_ones(rgb.shape[0], 1)], 1)
+        background = torch.cat([self.background, self.background.new_zeros(1)])
+        image = scatter_pixels(rgba, pixels, background, (h, w))
+        shaded = antialias(image, raster, displaced, t.faces, camera, t.topology)
         normals = None
         if want_normals:
             normals = rotate_normalize(pixel_rot, pixel_maps[:, 3:6])

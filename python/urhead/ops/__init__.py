@@ -8,6 +8,7 @@ from urhead.ops.composite import composite
 from urhead.ops.interpolate import interpolate
 from urhead.ops.lbs import LbsOutput, lbs
 from urhead.ops.lift import LiftOutput, lift_gaussians_geometry
+from urhead.ops.pixels import covered_pixels, scatter_pixels
 from urhead.ops.rasterize import RasterOutput, UvRasterOutput, rasterize, rasterize_uv
 from urhead.ops.rotate import rotate_normalize
 from urhead.ops.sh_texture import sh_texture
@@ -28,6 +29,7 @@ __all__ = [
     "antialias",
     "antialias_topology",
     "composite",
+    "covered_pixels",
     "interpolate",
     "lbs",
     "lift_gaussians_geometry",
@@ -39,6 +41,7 @@ __all__ = [
     "rasterize_gaussians",
     "rasterize_uv",
     "rotate_normalize",
+    "scatter_pixels",
     "sh_shade",
     "sh_texture",
     "texture",

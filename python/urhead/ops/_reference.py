@@ -665,6 +665,17 @@ def composite(front, transmittance, back):
     return front + transmittance[..., None] * back[..., :3]
 
 
+def covered_pixels(tri_id):
+    """Reference of :func:`urhead.ops.covered_pixels`."""
+    return (tri_id.reshape(-1) >= 0).nonzero()[:, 0]
+
+
+def scatter_pixels(values, pixels, background, size):
+    """Reference of :func:`urhead.ops.scatter_pixels`."""
+    flat = background.expand(size[0] * size[1], -1).index_put((pixels,), values)
+    return flat.reshape(*size, -1)
+
+
 def normalize_clamped(v: torch.Tensor) -> torch.Tensor:
     """(..., 3) vectors over ``max(|v|, 1e-12)``: zero stays zero."""
     return v / v.norm(dim=-1, keepdim=True).clamp_min(1e-12)

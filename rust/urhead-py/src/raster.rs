@@ -4,7 +4,7 @@
 use numpy::{Element, PyReadonlyArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::PyTuple;
-use urhead_core::raster::{self, AntialiasInputs, SilhouetteBlends, PACKED_BLEND};
+use urhead_core::raster::{self, AntialiasInputs, ScatterInputs, SilhouetteBlends, PACKED_BLEND};
 use urhead_core::Real;
 
 use crate::arrays::{array, data, optional, shape, with_float_type};
@@ -559,6 +559,115 @@ pub fn rasterize_uv<'py>(
     ))
 }
 
+fn scatter_pixels_forward_typed<'py, T: Element + Real>(
+    py: Python<'py>,
+    values: Arr<'py, T>,
+    pixels: Arr<'py, i64>,
+    background: Arr<'py, T>,
+    (height, width): (usize, usize),
+    num_threads: usize,
+) -> PyResult<Bound<'py, numpy::PyArrayDyn<T>>> {
+    let c = shape(&values, "values", 2, "(P, C)")?[1];
+    shape(&pixels, "pixels", 1, "(P,) int64")?;
+    shape(&background, "background", 1, "(C,)")?;
+    let inputs = ScatterInputs {
+        pixels: data(&pixels, "pixels")?,
+        pixel_count: height * width,
+        channels: c,
+    };
+    let (v, b) = (data(&values, "values")?, data(&background, "background")?);
+    let out = py
+        .allow_threads(|| with_threads(num_threads, || raster::scatter_pixels_forward(&inputs, v, b)))
+        .map_err(py_err)?;
+    array(py, out, &[height, width, c])
+}
+
+fn scatter_pixels_backward_typed<'py, T: Element + Real>(
+    py: Python<'py>,
+    pixels: Arr<'py, i64>,
+    v_image: Arr<'py, T>,
+    needs: (bool, bool),
+    num_threads: usize,
+) -> PyResult<Bound<'py, PyTuple>> {
+    let p = shape(&pixels, "pixels", 1, "(P,) int64")?[0];
+    let dims = shape(&v_image, "v_image", 3, "(H, W, C)")?;
+    let inputs = ScatterInputs {
+        pixels: data(&pixels, "pixels")?,
+        pixel_count: dims[0] * dims[1],
+        channels: dims[2],
+    };
+    let g = data(&v_image, "v_image")?;
+    let out = py
+        .allow_threads(|| {
+            with_threads(num_threads, || {
+                raster::scatter_pixels_backward(&inputs, g, needs.0, needs.1)
+            })
+        })
+        .map_err(py_err)?;
+    PyTuple::new(
+        py,
+        [
+            optional(py, out.v_values, &[p, dims[2]])?,
+            optional(py, out.v_background, &[dims[2]])?,
+        ],
+    )
+}
+
+/// The covered pixels of a rasterized `tri_id (H, W)`: (P,) int64 flat indices, increasing.
+#[pyfunction]
+pub fn covered_pixels<'py>(
+    py: Python<'py>,
+    tri_id: Arr<'py, i32>,
+    num_threads: usize,
+) -> PyResult<Bound<'py, numpy::PyArrayDyn<i64>>> {
+    image_dims(&tri_id, "tri_id", 2, "(H, W)")?;
+    let t = data(&tri_id, "tri_id")?;
+    let out = py
+        .allow_threads(|| with_threads(num_threads, || raster::covered_pixels(t)))
+        .map_err(py_err)?;
+    let n = out.len();
+    array(py, out, &[n])
+}
+
+/// scatter_pixels → (H, W, C): `background (C,)` with `values (P, C)` at `pixels (P,)`.
+#[pyfunction]
+pub fn scatter_pixels_forward<'py>(
+    py: Python<'py>,
+    values: &Bound<'py, PyAny>,
+    pixels: Arr<'py, i64>,
+    background: &Bound<'py, PyAny>,
+    size: (usize, usize),
+    num_threads: usize,
+) -> PyResult<Bound<'py, PyAny>> {
+    with_float_type!(values, T => scatter_pixels_forward_typed::<T>(
+        py,
+        values.extract()?,
+        pixels,
+        background.extract()?,
+        size,
+        num_threads,
+    )
+    .map(Bound::into_any))
+}
+
+/// scatter_pixels backward → (v_values (P, C), v_background (C,)), None where not requested.
+#[pyfunction]
+pub fn scatter_pixels_backward<'py>(
+    py: Python<'py>,
+    pixels: Arr<'py, i64>,
+    v_image: &Bound<'py, PyAny>,
+    needs: (bool, bool),
+    num_threads: usize,
+) -> PyResult<Bound<'py, PyTuple>> {
+    with_float_type!(v_image, T => scatter_pixels_backward_typed::<T>(
+        py,
+        pixels,
+        v_image.extract()?,
+        needs,
+        num_threads,
+    ))
+}
+
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(edge_topology, m)?)?;
     m.add_function(wrap_pyfunction!(rasterize_forward, m)?)?;
@@ -570,5 +679,8 @@ pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(antialias_forward, m)?)?;
     m.add_function(wrap_pyfunction!(antialias_backward, m)?)?;
     m.add_function(wrap_pyfunction!(rasterize_uv, m)?)?;
+    m.add_function(wrap_pyfunction!(covered_pixels, m)?)?;
+    m.add_function(wrap_pyfunction!(scatter_pixels_forward, m)?)?;
+    m.add_function(wrap_pyfunction!(scatter_pixels_backward, m)?)?;
     Ok(())
 }

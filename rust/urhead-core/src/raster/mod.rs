@@ -9,6 +9,8 @@
 //!   (COO) list of the texels that received gradient.
 //! - [`sh_texture`]: a texture lookup shaded with spherical harmonics in one pass, whose
 //!   backward never reads the texture again.
+//! - [`covered_pixels`], [`scatter_pixels_forward`]: the covered pixels as a list, and
+//!   per-pixel rows back into an image over a background.
 //! - [`antialias`]: analytic silhouette antialiasing with gradients to vertex positions.
 //! - [`rasterize_uv`]: rasterization of the UV layout itself (per-texel triangle and
 //!   barycentrics), no gradient.
@@ -34,6 +36,7 @@
 mod antialias;
 mod bins;
 mod interpolate;
+mod pixels;
 mod rasterize;
 mod runs;
 mod setup;
@@ -49,6 +52,9 @@ pub use antialias::{
     AntialiasGrads, AntialiasInputs, SilhouetteBlends, PACKED_BLEND,
 };
 pub use interpolate::{interpolate_backward, interpolate_forward, InterpolateGrads};
+pub use pixels::{
+    covered_pixels, scatter_pixels_backward, scatter_pixels_forward, ScatterGrads, ScatterInputs,
+};
 pub use rasterize::{rasterize_backward, rasterize_forward};
 pub use setup::{GUARD_BAND_PX, SUBPIXEL_BITS};
 pub use sh_texture::{

@@ -1,0 +1,301 @@
+//! The mesh branch works on its covered pixels only; these two ops go from the image to
+//! that list and back.
+//!
+//! - [`covered_pixels`]: the flat indices of the pixels a triangle covers, increasing
+//!   (torch's `(tri_id >= 0).nonzero()` is a serial pass plus a mask image).
+//! - [`scatter_pixels_forward`]: an image filled with a background value, with listed
+//!   pixels set to their rows (torch's `repeat` + `index_put_` are two serial passes over
+//!   the image), and its adjoint: the rows' gradient is the image gradient gathered at the
+//!   listed pixels, the background's the image gradient summed over the others.
+//!
+//! Work is cut into fixed chunks of pixels and partial sums are merged in chunk order, so
+//! results are the same bits for any thread count.
+
+use rayon::prelude::*;
+
+use crate::error::{check_len, Error, Result};
+use crate::memory::zeroed;
+use crate::Real;
+
+/// Pixels per parallel work item.
+const CHUNK: usize = 8192;
+
+/// `(P,)` flat indices `y·W + x` of the pixels whose `tri_id` is not −1 (any value ≥ 0
+/// counts as covered), increasing.
+pub fn covered_pixels(tri_id: &[i32]) -> Result<Vec<i64>> {
+    let per_chunk: Vec<Vec<i64>> = tri_id
+        .par_chunks(CHUNK)
+        .enumerate()
+        .map(|(chunk, ids)| {
+            let first = (chunk * CHUNK) as i64;
+            (first..)
+                .zip(ids)
+                .filter(|&(_, &id)| id >= 0)
+                .map(|(p, _)| p)
+                .collect()
+        })
+        .collect();
+    let total = per_chunk.iter().map(Vec::len).sum();
+    let mut pixels = Vec::new();
+    pixels.try_reserve_exact(total).map_err(|_| Error::OutOfMemory {
+        what: "covered pixels (P,)",
+        elements: total,
+        bytes: (total as u128) * 8,
+    })?;
+    for chunk in per_chunk {
+        pixels.extend_from_slice(&chunk);
+    }
+    Ok(pixels)
+}
+
+/// What [`scatter_pixels_forward`] and its adjoint read.
+#[derive(Debug, Clone, Copy)]
+pub struct ScatterInputs<'a> {
+    /// `(P,)` flat pixel indices, strictly increasing (each pixel listed once), in
+    /// `[0, pixel_count)`.
+    pub pixels: &'a [i64],
+    /// `H·W`.
+    pub pixel_count: usize,
+    /// `C`, the rows' and the background's length.
+    pub channels: usize,
+}
+
+impl ScatterInputs<'_> {
+    /// Checks the list; returns `P`.
+    fn validate(&self) -> Result<usize> {
+        if self.channels == 0 {
+            return Err(Error::Invalid {
+                arg: "values",
+                reason: "needs at least one channel".into(),
+            });
+        }
+        let n = self.pixel_count as i64;
+        let bad = first_non_increase(self.pixels)
+            .or_else(|| (self.pixels.first().is_some_and(|&p| p < 0)).then_some(0))
+            .or_else(|| (self.pixels.last().is_some_and(|&p| p >= n)).then(|| self.pixels.len() - 1));
+        if let Some(i) = bad {
+            return Err(Error::Invalid {
+                arg: "pixels",
+                reason: format!(
+                    "must be strictly increasing flat indices in [0, {n}), got {} at index {i}{}",
+                    self.pixels[i],
+                    if i > 0 {
+                        format!(" after {}", self.pixels[i - 1])
+                    } else {
+                        String::new()
+                    }
+                ),
+            });
+        }
+        Ok(self.pixels.len())
+    }
+
+    /// The entries of `pixels` that fall in pixel chunk `chunk`, and the first one's index.
+    fn listed_in(&self, chunk: usize) -> (usize, &[i64]) {
+        let (start, end) = ((chunk * CHUNK) as i64, ((chunk + 1) * CHUNK) as i64);
+        let first = self.pixels.partition_point(|&p| p < start);
+        let last = first + self.pixels[first..].partition_point(|&p| p < end);
+        (first, &self.pixels[first..last])
+    }
+}
+
+/// The index of the first entry of `list` not above the one before it.
+fn first_non_increase(list: &[i64]) -> Option<usize> {
+    let chunks = list.len().div_ceil(CHUNK);
+    (0..chunks).into_par_iter().find_map_first(|chunk| {
+        // Each chunk's pairs, the first reaching back into the chunk before.
+        let pairs = &list[(chunk * CHUNK).max(1) - 1..((chunk + 1) * CHUNK).min(list.len())];
+        // A branch-free test vectorises; only a failing chunk is searched.
+        let fails = pairs.windows(2).fold(false, |bad, w| bad | (w[0] >= w[1]));
+        fails.then(|| (chunk * CHUNK).max(1) + pairs.windows(2).position(|w| w[0] >= w[1]).unwrap())
+    })
+}
+
+/// `(H·W, C)`: `background` everywhere, `values[i]` at pixel `pixels[i]`. `values (P, C)`
+/// and `background (C,)` are data (non-finite values pass through).
+pub fn scatter_pixels_forward<T: Real>(
+    inputs: &ScatterInputs<'_>,
+    values: &[T],
+    background: &[T],
+) -> Result<Vec<T>> {
+    let p = inputs.validate()?;
+    let c = inputs.channels;
+    check_len("values", values, p * c, &format!("(P, C) = ({p}, {c})"))?;
+    check_len("background", background, c, &format!("(C,) = ({c},)"))?;
+    let mut image = zeroed("scattered image (H, W, C)", inputs.pixel_count * c)?;
+    // One chunk of background, copied in one go (per pixel, a `c`-long copy is a call).
+    let template = background.repeat(CHUNK);
+    image
+        .par_chunks_mut(CHUNK * c)
+        .enumerate()
+        .for_each(|(chunk, out)| {
+            out.copy_from_slice(&template[..out.len()]);
+            let first = chunk * CHUNK;
+            let (start, listed) = inputs.listed_in(chunk);
+            for (i, &q) in listed.iter().enumerate() {
+                copy_row(
+                    &mut out[(q as usize - first) * c..],
+                    &values[(start + i) * c..],
+                    c,
+                );
+            }
+        });
+    Ok(image)
+}
+
+/// `dst[..c] = src[..c]` element by element: `c` is a handful, and `copy_from_slice`
+/// of an unknown length is a `memcpy` call per row.
+#[inline(always)]
+fn copy_row<T: Copy>(dst: &mut [T], src: &[T], c: usize) {
+    for (d, s) in dst[..c].iter_mut().zip(&src[..c]) {
+        *d = *s;
+    }
+}
+
+/// The gradients of [`scatter_pixels_backward`], `None` where not asked for.
+#[derive(Debug, Clone)]
+pub struct ScatterGrads<T> {
+    /// `(P, C)`: the image gradient at the listed pixels.
+    pub v_values: Option<Vec<T>>,
+    /// `(C,)`: the image gradient summed over the pixels not listed.
+    pub v_background: Option<Vec<T>>,
+}
+
+/// Adjoint of [`scatter_pixels_forward`] given the image gradient `v_image (H·W, C)`
+/// (data, as the forward's values: non-finite values pass through).
+pub fn scatter_pixels_backward<T: Real>(
+    inputs: &ScatterInputs<'_>,
+    v_image: &[T],
+    need_values: bool,
+    need_background: bool,
+) -> Result<ScatterGrads<T>> {
+    let p = inputs.validate()?;
+    let c = inputs.channels;
+    let n = inputs.pixel_count;
+    check_len("v_image", v_image, n * c, &format!("(H·W, C) = ({n}, {c})"))?;
+    let v_values = need_values
+        .then(|| -> Result<Vec<T>> {
+            let mut rows = zeroed("scatter values gradient (P, C)", p * c)?;
+            rows.par_chunks_mut(CHUNK * c)
+                .zip(inputs.pixels.par_chunks(CHUNK))
+                .for_each(|(rows, pixels)| {
+                    for (row, &q) in rows.chunks_exact_mut(c).zip(pixels) {
+                        copy_row(row, &v_image[q as usize * c..], c);
+                    }
+                });
+            Ok(rows)
+        })
+        .transpose()?;
+    let v_background = need_background.then(|| {
+        let partials: Vec<Vec<T>> = v_image
+            .par_chunks(CHUNK * c)
+            .enumerate()
+            .map(|(chunk, grads)| {
+                let first = chunk * CHUNK;
+                let mut listed = inputs.listed_in(chunk).1.iter().peekable();
+                let mut sum = vec![T::zero(); c];
+                for (i, g) in grads.chunks_exact(c).enumerate() {
+                    if listed.next_if(|&&q| q as usize == first + i).is_some() {
+                        continue;
+                    }
+                    for (s, x) in sum.iter_mut().zip(g) {
+                        *s += *x;
+                    }
+                }
+                sum
+            })
+            .collect();
+        crate::parallel::sum_in_order(&partials, c)
+    });
+    Ok(ScatterGrads {
+        v_values,
+        v_background,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn covered_pixels_lists_non_negative_ids_in_order() {
+        let n = 3 * CHUNK + 17;
+        let tri_id: Vec<i32> = (0..n)
+            .map(|i| {
+                if i % 5 == 0 || i % 7 == 3 {
+                    (i % 11) as i32
+                } else {
+                    -1
+                }
+            })
+            .collect();
+        let expected: Vec<i64> = (0..n as i64).filter(|&i| tri_id[i as usize] >= 0).collect();
+        assert_eq!(covered_pixels(&tri_id).unwrap(), expected);
+        assert!(covered_pixels(&[]).unwrap().is_empty());
+        assert!(covered_pixels(&[-1; 10]).unwrap().is_empty());
+    }
+
+    #[test]
+    fn scatter_and_its_adjoint_against_a_direct_loop() {
+        let (n, c) = (2 * CHUNK + 5, 3);
+        let pixels: Vec<i64> = (0..n as i64).filter(|i| i % 3 != 1).collect();
+        let values: Vec<f64> = (0..pixels.len() * c).map(|i| i as f64 * 0.5).collect();
+        let background = [0.25, -1.0, 2.0];
+        let inputs = ScatterInputs {
+            pixels: &pixels,
+            pixel_count: n,
+            channels: c,
+        };
+        let image = scatter_pixels_forward(&inputs, &values, &background).unwrap();
+        let mut expected: Vec<f64> = background.repeat(n);
+        for (row, &q) in pixels.iter().enumerate() {
+            let q = q as usize;
+            expected[q * c..(q + 1) * c].copy_from_slice(&values[row * c..(row + 1) * c]);
+        }
+        assert_eq!(image, expected);
+
+        let v_image: Vec<f64> = (0..n * c).map(|i| ((i * 37) % 101) as f64 - 50.0).collect();
+        let g = scatter_pixels_backward(&inputs, &v_image, true, true).unwrap();
+        let v_values: Vec<f64> = pixels
+            .iter()
+            .flat_map(|&q| v_image[q as usize * c..(q as usize + 1) * c].to_vec())
+            .collect();
+        assert_eq!(g.v_values.unwrap(), v_values);
+        let mut v_background = vec![0.0; c];
+        for q in (0..n).filter(|&q| q % 3 == 1) {
+            for k in 0..c {
+                v_background[k] += v_image[q * c + k];
+            }
+        }
+        assert_eq!(g.v_background.unwrap(), v_background); // integers: exact in any order
+    }
+
+    #[test]
+    fn rejects_lists_that_are_not_strictly_increasing_or_out_of_range() {
+        let check = |pixels: &[i64]| {
+            let inputs = ScatterInputs {
+                pixels,
+                pixel_count: 10,
+                channels: 1,
+            };
+            scatter_pixels_forward(&inputs, &vec![0.0f32; pixels.len()], &[0.0])
+        };
+        assert!(check(&[0, 3, 9]).is_ok());
+        for bad in [&[0, 3, 3][..], &[4, 2], &[-1, 2], &[2, 10]] {
+            let err = check(bad).unwrap_err();
+            assert!(
+                matches!(err, Error::Invalid { arg: "pixels", .. }),
+                "{bad:?}: {err}"
+            );
+        }
+        let inputs = ScatterInputs {
+            pixels: &[1],
+            pixel_count: 10,
+            channels: 2,
+        };
+        assert!(matches!(
+            scatter_pixels_forward(&inputs, &[0.0f32; 3], &[0.0, 0.0]),
+            Err(Error::Shape { arg: "values", .. })
+        ));
+    }
+}
