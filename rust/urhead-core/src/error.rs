@@ -104,7 +104,7 @@ const SCAN_BLOCK: usize = 16_384;
 /// kernel call, so the scan is made cheap: a block is reduced without an early exit (a
 /// branch-free `bad` then vectorises; an early-exit search runs an element a cycle), blocks
 /// in parallel on large inputs, and only the first bad block is searched element by element.
-fn first_where<T: Sync>(data: &[T], bad: impl Fn(&T) -> bool + Sync) -> Option<usize> {
+pub(crate) fn first_where<T: Sync>(data: &[T], bad: impl Fn(&T) -> bool + Sync) -> Option<usize> {
     let any_bad = |block: &[T]| block.iter().fold(false, |found, x| found | bad(x));
     let block = if data.len() > 4 * SCAN_BLOCK {
         data.par_chunks(SCAN_BLOCK).position_first(any_bad)

@@ -27,7 +27,7 @@ pub use l1::{masked_l1, masked_l1_with_grad};
 
 use rayon::prelude::*;
 
-use crate::error::{check_len, Error, Result};
+use crate::error::{check_finite, check_len, first_where, Error, Result};
 use crate::Real;
 
 /// Side of the Gaussian window.
@@ -43,7 +43,7 @@ pub const C2: f64 = 0.03 * 0.03;
 /// order of the per-band partial sums, and hence the result bits, never change.
 const BAND_ROWS: usize = 128;
 
-/// Elements per parallel chunk of the input checks.
+/// Elements per parallel chunk of the mask sum.
 const CHECK_CHUNK: usize = 1 << 16;
 
 /// Borrowed inputs of one SSIM evaluation.
@@ -74,14 +74,14 @@ impl<T: Real> SsimInputs<'_, T> {
         let layout = format!("(H, W, C) = ({h}, {w}, {c})");
         check_len("image", self.image, h * w * c, &layout)?;
         check_len("target", self.target, h * w * c, &layout)?;
-        check_all_finite("image", self.image)?;
-        check_all_finite("target", self.target)?;
+        check_finite("image", self.image)?;
+        check_finite("target", self.target)?;
         let Some(mask) = self.mask else {
             return Ok((h * w) as f64);
         };
         check_len("mask", mask, h * w, &format!("(H, W) = ({h}, {w})"))?;
-        check_all_finite("mask", mask)?;
-        if let Some(i) = mask.iter().position(|&m| !(m >= T::zero() && m <= T::one())) {
+        check_finite("mask", mask)?;
+        if let Some(i) = first_where(mask, |&m| (m < T::zero()) | (m > T::one())) {
             return Err(Error::Invalid {
                 arg: "mask",
                 reason: format!("weights must be in [0, 1], got {:?} at flat index {i}", mask[i]),
@@ -98,18 +98,6 @@ impl<T: Real> SsimInputs<'_, T> {
     #[inline(always)]
     fn mask_weight(&self, pixel: usize) -> T {
         self.mask.map_or(T::one(), |m| m[pixel])
-    }
-}
-
-/// `check_finite`, with the common all-finite case vectorised and run in parallel.
-fn check_all_finite<T: Real>(arg: &'static str, data: &[T]) -> Result<()> {
-    let all_finite = data
-        .par_chunks(CHECK_CHUNK)
-        .all(|chunk| chunk.iter().fold(true, |ok, x| ok & x.is_finite()));
-    if all_finite {
-        Ok(())
-    } else {
-        crate::error::check_finite(arg, data)
     }
 }
 
