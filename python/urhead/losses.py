@@ -38,11 +38,12 @@ def ssim(image, target, mask=None) -> torch.Tensor:
 
 
 def l1(image, target, mask=None) -> torch.Tensor:
-    """Mean absolute error inside ``mask``."""
+    """Mean absolute error inside ``mask``; ``image`` may hold more channels than
+    ``target``, its first C compared (an RGBA image against an RGB target)."""
     if _kernel_applies(image, target, mask):
         mask = None if mask is None else mask.contiguous()
         return masked_l1(image.contiguous(), target.contiguous(), mask)
-    return masked_mean((image - target).abs(), mask)
+    return masked_mean((image[..., : target.shape[-1]] - target).abs(), mask)
 
 
 def psnr(image, target, mask=None) -> torch.Tensor:

@@ -638,8 +638,8 @@ def masked_ssim(image, target, mask=None):
 
 
 def masked_l1(image, target, mask=None):
-    """Reference of :func:`urhead.ops.masked_l1`."""
-    return masked_mean((image - target).abs(), mask)
+    """Reference of :func:`urhead.ops.masked_l1` (the image's first C channels)."""
+    return masked_mean((image[..., : target.shape[-1]] - target).abs(), mask)
 
 
 def sh_shade(coeffs, dirs, degree):

@@ -88,5 +88,8 @@ def masked_l1(
     image: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None
 ) -> torch.Tensor:
     """Mean absolute difference inside ``mask``: ``Σ m·|image − target| / max(C·Σ m, 1)``,
-    differentiable in ``image`` (subgradient sign(0) = 0). Arguments as :func:`masked_ssim`."""
+    differentiable in ``image`` (subgradient sign(0) = 0). Arguments as :func:`masked_ssim`,
+    but ``image`` may be (H, W, S) with S ≥ C, the target's channels: its first C are
+    compared where they lie (a mesh's RGBA against an RGB frame, with no copy of its colour
+    and no scatter of the gradient back into the RGBA); its gradient is zero past them."""
     return _apply("l1", image, target, mask)

@@ -64,7 +64,7 @@ class Objective:
         l1_full = l1(image, target)
         photo = l1_full
         if render.gaussians is not None and self.mesh_term > 0:
-            l1_mesh = l1(render.mesh.image, target)
+            l1_mesh = l1(render.mesh.rgba, target)  # its colour read in place
             photo = (1 - self.mesh_term) * l1_full + self.mesh_term * l1_mesh
         total = (1 - self.lambda_ssim) * photo
         if self.lambda_ssim > 0:

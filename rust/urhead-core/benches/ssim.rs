@@ -36,6 +36,7 @@ fn bench_ssim(c: &mut Criterion) {
         height: SIDE,
         width: SIDE,
         channels: CHANNELS,
+        image_channels: CHANNELS,
     };
     let mut group = c.benchmark_group("ssim_512x512x3_f32");
     group.bench_function("forward", |b| b.iter(|| masked_ssim(&inputs).unwrap()));

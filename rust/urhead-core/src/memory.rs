@@ -157,6 +157,16 @@ fn discard_pages(start: usize, len: usize) {
 #[cfg(not(target_os = "linux"))]
 fn discard_pages(_start: usize, _len: usize) {}
 
+/// `dst[..n] = src[..n]` element by element, for rows of a handful of elements (a
+/// pixel's channels): `copy_from_slice` of a length unknown at compile time is a
+/// `memcpy` call, which costs more than the copy when done once per pixel.
+#[inline(always)]
+pub fn copy_short<T: Copy>(dst: &mut [T], src: &[T], n: usize) {
+    for (d, s) in dst[..n].iter_mut().zip(&src[..n]) {
+        *d = *s;
+    }
+}
+
 /// Hints the CPU to start loading the cache lines of `data` (random-access kernels issue
 /// it a few items ahead, so several memory reads overlap).
 #[inline(always)]

@@ -99,6 +99,7 @@ impl Case {
             height: self.h,
             width: self.w,
             channels: self.c,
+            image_channels: self.c,
         }
     }
 
@@ -205,6 +206,7 @@ fn thread_count_does_not_change_bits() {
         height: h,
         width: w,
         channels: c,
+        image_channels: c,
     };
     let run = |threads: usize| on_threads(threads, || masked_ssim_with_grad(&inputs).unwrap());
     let (v1, g1) = run(1);

@@ -13,16 +13,21 @@ use crate::pool::with_threads;
 
 type Arr<'py, T> = PyReadonlyArrayDyn<'py, T>;
 
+/// The core's inputs; the image may hold more channels than the target (S ≥ C, its first
+/// C compared) for L1 only.
 fn inputs<'a, T: Element + Real>(
+    metric: &str,
     image: &'a Arr<'_, T>,
     target: &'a Arr<'_, T>,
     mask: Option<&'a Arr<'_, T>>,
 ) -> PyResult<SsimInputs<'a, T>> {
-    let dims = shape(image, "image", 3, "(H, W, C)")?;
-    let target_dims = shape(target, "target", 3, "(H, W, C)")?;
-    if target_dims != dims {
+    let image_dims = shape(image, "image", 3, "(H, W, C)")?;
+    let dims = shape(target, "target", 3, "(H, W, C)")?;
+    let wider = metric == "l1" && image_dims[2] > dims[2];
+    if image_dims[..2] != dims[..2] || (image_dims[2] != dims[2] && !wider) {
         return Err(ShapeError::new_err(format!(
-            "target must have the image's shape {dims:?}, got {target_dims:?}"
+            "target must have the image's shape {image_dims:?} (for l1, the image may hold \
+             more channels, its first C compared), got {dims:?}"
         )));
     }
     let mask = match mask {
@@ -45,18 +50,20 @@ fn inputs<'a, T: Element + Real>(
         height: dims[0],
         width: dims[1],
         channels: dims[2],
+        image_channels: image_dims[2],
     })
 }
 
 fn value<T: Element + Real>(
     py: Python<'_>,
+    metric: &str,
     kernel: fn(&SsimInputs<'_, T>) -> Result<T>,
     image: Arr<'_, T>,
     target: Arr<'_, T>,
     mask: Option<Arr<'_, T>>,
     num_threads: usize,
 ) -> PyResult<f64> {
-    let inputs = inputs(&image, &target, mask.as_ref())?;
+    let inputs = inputs(metric, &image, &target, mask.as_ref())?;
     let v = py
         .allow_threads(|| with_threads(num_threads, || kernel(&inputs)))
         .map_err(py_err)?;
@@ -66,17 +73,18 @@ fn value<T: Element + Real>(
 #[allow(clippy::type_complexity)]
 fn value_and_grad<'py, T: Element + Real>(
     py: Python<'py>,
+    metric: &str,
     kernel: fn(&SsimInputs<'_, T>) -> Result<(T, Vec<T>)>,
     image: Arr<'py, T>,
     target: Arr<'py, T>,
     mask: Option<Arr<'py, T>>,
     num_threads: usize,
 ) -> PyResult<(f64, Bound<'py, PyAny>)> {
-    let inputs = inputs(&image, &target, mask.as_ref())?;
+    let inputs = inputs(metric, &image, &target, mask.as_ref())?;
     let (v, grad) = py
         .allow_threads(|| with_threads(num_threads, || kernel(&inputs)))
         .map_err(py_err)?;
-    let dims = [inputs.height, inputs.width, inputs.channels];
+    let dims = [inputs.height, inputs.width, inputs.image_channels];
     Ok((v.to_f64().unwrap_or(f64::NAN), array(py, grad, &dims)?.into_any()))
 }
 
@@ -110,6 +118,7 @@ pub fn masked_mean<'py>(
 ) -> PyResult<f64> {
     with_float_type!(image, T => value(
         py,
+        metric,
         kernels::<T>(metric)?.0,
         image.extract()?,
         target.extract()?,
@@ -130,6 +139,7 @@ pub fn masked_mean_grad<'py>(
 ) -> PyResult<(f64, Bound<'py, PyAny>)> {
     with_float_type!(image, T => value_and_grad(
         py,
+        metric,
         kernels::<T>(metric)?.1,
         image.extract()?,
         target.extract()?,

@@ -14,7 +14,7 @@
 use rayon::prelude::*;
 
 use crate::error::{check_len, Error, Result};
-use crate::memory::zeroed;
+use crate::memory::{copy_short, zeroed};
 use crate::Real;
 
 /// Pixels per parallel work item.
@@ -133,7 +133,7 @@ pub fn scatter_pixels_forward<T: Real>(
             let first = chunk * CHUNK;
             let (start, listed) = inputs.listed_in(chunk);
             for (i, &q) in listed.iter().enumerate() {
-                copy_row(
+                copy_short(
                     &mut out[(q as usize - first) * c..],
                     &values[(start + i) * c..],
                     c,
@@ -141,15 +141,6 @@ pub fn scatter_pixels_forward<T: Real>(
             }
         });
     Ok(image)
-}
-
-/// `dst[..c] = src[..c]` element by element: `c` is a handful, and `copy_from_slice`
-/// of an unknown length is a `memcpy` call per row.
-#[inline(always)]
-fn copy_row<T: Copy>(dst: &mut [T], src: &[T], c: usize) {
-    for (d, s) in dst[..c].iter_mut().zip(&src[..c]) {
-        *d = *s;
-    }
 }
 
 /// The gradients of [`scatter_pixels_backward`], `None` where not asked for.
@@ -180,7 +171,7 @@ pub fn scatter_pixels_backward<T: Real>(
                 .zip(inputs.pixels.par_chunks(CHUNK))
                 .for_each(|(rows, pixels)| {
                     for (row, &q) in rows.chunks_exact_mut(c).zip(pixels) {
-                        copy_row(row, &v_image[q as usize * c..], c);
+                        copy_short(row, &v_image[q as usize * c..], c);
                     }
                 });
             Ok(rows)

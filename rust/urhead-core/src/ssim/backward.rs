@@ -41,7 +41,7 @@ fn pixel_adjoint<T: Real>(p: &PixelTerms<T>, g: T) -> (T, T, T, T) {
 /// Masked mean SSIM and its gradient with respect to `image` (`(H, W, C)`); the target and
 /// mask are constants. One fused pass; the gradient of a scaled loss is this one scaled.
 pub fn masked_ssim_with_grad<T: Real>(inputs: &SsimInputs<'_, T>) -> Result<(T, Vec<T>)> {
-    let norm = inputs.validate()?.max(1.0);
+    let norm = inputs.validate_same_channels()?.max(1.0);
     let (h, len) = (inputs.height, inputs.width * inputs.channels);
     let scale = T::c(1.0 / (norm * inputs.channels as f64));
     let mut grad = zeroed("SSIM gradient (H, W, C)", h * len)?;

@@ -87,7 +87,7 @@ pub(super) fn ssim_row<T: Real>(moments: &[T], out: &mut [T]) {
 
 /// Masked mean SSIM `Σ_p m_p·ssim_p / max(Σ_p m_p, 1)`, ssim_p averaged over channels.
 pub fn masked_ssim<T: Real>(inputs: &SsimInputs<'_, T>) -> Result<T> {
-    let norm = inputs.validate()?.max(1.0);
+    let norm = inputs.validate_same_channels()?.max(1.0);
     let len = inputs.width * inputs.channels;
     let partials: Vec<f64> = bands(inputs.height)
         .map(|(start, end)| {

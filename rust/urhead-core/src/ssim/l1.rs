@@ -1,29 +1,32 @@
 //! Masked L1 `Σ_p m_p·Σ_c |x − y| / max(C·Σ_p m_p, 1)` and its subgradient (sign(0) = 0):
-//! one pass over the images instead of torch's chain of elementwise kernels.
+//! one pass over the images instead of torch's chain of elementwise kernels. The image may
+//! hold more channels than the target (`S ≥ C`, e.g. the mesh's RGBA against an RGB
+//! frame): its first `C` are compared where they lie, and its gradient has its layout,
+//! zero past them — no copy of the colour, no scatter of its gradient into the RGBA.
 
 use rayon::prelude::*;
 
 use super::forward::expand_mask_row;
 use super::{SsimInputs, BAND_ROWS};
 use crate::error::Result;
-use crate::memory::zeroed;
+use crate::memory::{copy_short, zeroed};
 use crate::Real;
 
 /// Masked mean absolute difference.
 pub fn masked_l1<T: Real>(inputs: &SsimInputs<'_, T>) -> Result<T> {
     let norm = inputs.validate()?;
-    let len = inputs.width * inputs.channels;
+    let (len, image_len) = row_lengths(inputs);
     let partials: Vec<f64> = inputs
         .image
-        .par_chunks(BAND_ROWS * len)
+        .par_chunks(BAND_ROWS * image_len)
         .zip(inputs.target.par_chunks(BAND_ROWS * len))
         .enumerate()
         .map(|(band, (x, y))| {
-            let mut mask = vec![T::zero(); len];
+            let (mut mask, mut gathered) = (vec![T::zero(); len], vec![T::zero(); len]);
             let mut total = 0.0;
-            for (i, (x, y)) in x.chunks_exact(len).zip(y.chunks_exact(len)).enumerate() {
+            for (i, (x, y)) in x.chunks_exact(image_len).zip(y.chunks_exact(len)).enumerate() {
                 expand_mask_row(inputs, band * BAND_ROWS + i, &mut mask);
-                total += row_sum(x, y, &mask);
+                total += row_sum(compared(inputs, x, &mut gathered), y, &mask);
             }
             total
         })
@@ -35,41 +38,76 @@ pub fn masked_l1<T: Real>(inputs: &SsimInputs<'_, T>) -> Result<T> {
 /// Masked mean absolute difference and its subgradient with respect to `image`.
 pub fn masked_l1_with_grad<T: Real>(inputs: &SsimInputs<'_, T>) -> Result<(T, Vec<T>)> {
     let norm = inputs.validate()?;
-    let len = inputs.width * inputs.channels;
-    let denominator = (norm * inputs.channels as f64).max(1.0);
+    let (len, image_len) = row_lengths(inputs);
+    let (c, s) = (inputs.channels, inputs.image_channels);
+    let denominator = (norm * c as f64).max(1.0);
     let scale = T::c(1.0 / denominator);
-    let mut grad = zeroed("L1 gradient (H, W, C)", inputs.height * len)?;
+    let mut grad = zeroed("L1 gradient (H, W, S)", inputs.height * image_len)?;
     let partials: Vec<f64> = grad
-        .par_chunks_mut(BAND_ROWS * len)
-        .zip(inputs.image.par_chunks(BAND_ROWS * len))
+        .par_chunks_mut(BAND_ROWS * image_len)
+        .zip(inputs.image.par_chunks(BAND_ROWS * image_len))
         .zip(inputs.target.par_chunks(BAND_ROWS * len))
         .enumerate()
         .map(|(band, ((grad, x), y))| {
-            let mut mask = vec![T::zero(); len];
+            let (mut mask, mut gathered) = (vec![T::zero(); len], vec![T::zero(); len]);
+            let mut slopes = if s == c { Vec::new() } else { vec![T::zero(); len] };
             let mut total = 0.0;
-            let rows = grad
-                .chunks_exact_mut(len)
-                .zip(x.chunks_exact(len))
-                .zip(y.chunks_exact(len));
-            for (i, ((g, x), y)) in rows.enumerate() {
+            let image_rows = grad.chunks_exact_mut(image_len).zip(x.chunks_exact(image_len));
+            for (i, ((g, x), y)) in image_rows.zip(y.chunks_exact(len)).enumerate() {
                 expand_mask_row(inputs, band * BAND_ROWS + i, &mut mask);
+                let x = compared(inputs, x, &mut gathered);
                 total += row_sum(x, y, &mask);
-                for t in 0..len {
-                    let d = x[t] - y[t];
-                    let sign = if d > T::zero() {
-                        T::one()
-                    } else if d < T::zero() {
-                        -T::one()
-                    } else {
-                        T::zero()
-                    };
-                    g[t] = mask[t] * scale * sign;
+                if s == c {
+                    slope_row(x, y, &mask, scale, g);
+                } else {
+                    slope_row(x, y, &mask, scale, &mut slopes);
+                    for (dst, src) in g.chunks_exact_mut(s).zip(slopes.chunks_exact(c)) {
+                        copy_short(dst, src, c);
+                    }
                 }
             }
             total
         })
         .collect();
     Ok((T::c(partials.iter().sum::<f64>() / denominator), grad))
+}
+
+/// `out[t] = mask[t]·scale·sign(x[t] − y[t])` (sign(0) = 0) over one row.
+fn slope_row<T: Real>(x: &[T], y: &[T], mask: &[T], scale: T, out: &mut [T]) {
+    let n = out.len();
+    let (x, y, mask) = (&x[..n], &y[..n], &mask[..n]);
+    for t in 0..n {
+        let d = x[t] - y[t];
+        let sign = if d > T::zero() {
+            T::one()
+        } else if d < T::zero() {
+            -T::one()
+        } else {
+            T::zero()
+        };
+        out[t] = mask[t] * scale * sign;
+    }
+}
+
+/// A row's length in the target (`W·C`) and in the image (`W·S`).
+fn row_lengths<T>(inputs: &SsimInputs<'_, T>) -> (usize, usize) {
+    (
+        inputs.width * inputs.channels,
+        inputs.width * inputs.image_channels,
+    )
+}
+
+/// Image row `x` (`W·S`) in the target's layout (`W·C`): itself when `S = C`, else its
+/// compared channels gathered into `gathered`.
+fn compared<'a, T: Real>(inputs: &SsimInputs<'_, T>, x: &'a [T], gathered: &'a mut [T]) -> &'a [T] {
+    let (c, s) = (inputs.channels, inputs.image_channels);
+    if s == c {
+        return x;
+    }
+    for (dst, pixel) in gathered.chunks_exact_mut(c).zip(x.chunks_exact(s)) {
+        copy_short(dst, pixel, c);
+    }
+    gathered
 }
 
 /// `Σ_t mask[t]·|x[t] − y[t]|` of one row, accumulated in T then returned as f64.

@@ -49,7 +49,9 @@ const CHECK_CHUNK: usize = 1 << 16;
 /// Borrowed inputs of one SSIM evaluation.
 #[derive(Debug, Clone, Copy)]
 pub struct SsimInputs<'a, T> {
-    /// `(H, W, C)` image the gradient is taken with respect to.
+    /// `(H, W, S)` image the gradient is taken with respect to; its first `C` channels are
+    /// compared (an RGBA image read in place against an RGB target, for L1; SSIM needs
+    /// `S = C`).
     pub image: &'a [T],
     /// `(H, W, C)` reference image (a constant).
     pub target: &'a [T],
@@ -57,23 +59,35 @@ pub struct SsimInputs<'a, T> {
     pub mask: Option<&'a [T]>,
     pub height: usize,
     pub width: usize,
+    /// `C`, the target's channels.
     pub channels: usize,
+    /// `S ≥ C`, the image's channels.
+    pub image_channels: usize,
 }
 
 impl<T: Real> SsimInputs<'_, T> {
     /// Shapes, finiteness and mask range; returns the mask weight `Σ m` (`H·W` without one).
     fn validate(&self) -> Result<f64> {
-        let (h, w, c) = (self.height, self.width, self.channels);
-        if h == 0 || w == 0 || c == 0 {
+        let (h, w, c, s) = (self.height, self.width, self.channels, self.image_channels);
+        if h == 0 || w == 0 || c == 0 || s < c {
             return Err(Error::Shape {
                 arg: "image",
-                expected: "(H, W, C) with H, W, C >= 1".into(),
-                got: format!("({h}, {w}, {c})"),
+                expected: "(H, W, S) with H, W >= 1 and S >= C >= 1 (C the target's channels)".into(),
+                got: format!("({h}, {w}, {s}) with C = {c}"),
             });
         }
-        let layout = format!("(H, W, C) = ({h}, {w}, {c})");
-        check_len("image", self.image, h * w * c, &layout)?;
-        check_len("target", self.target, h * w * c, &layout)?;
+        check_len(
+            "image",
+            self.image,
+            h * w * s,
+            &format!("(H, W, S) = ({h}, {w}, {s})"),
+        )?;
+        check_len(
+            "target",
+            self.target,
+            h * w * c,
+            &format!("(H, W, C) = ({h}, {w}, {c})"),
+        )?;
         check_finite("image", self.image)?;
         check_finite("target", self.target)?;
         let Some(mask) = self.mask else {
@@ -92,6 +106,18 @@ impl<T: Real> SsimInputs<'_, T> {
             .map(|chunk| chunk.iter().map(|m| m.to_f64().unwrap_or(0.0)).sum())
             .collect();
         Ok(partials.iter().sum())
+    }
+
+    /// [`Self::validate`] for SSIM, which compares whole images (`S = C`).
+    fn validate_same_channels(&self) -> Result<f64> {
+        if self.image_channels != self.channels {
+            return Err(Error::Shape {
+                arg: "image",
+                expected: format!("the target's {} channels for SSIM", self.channels),
+                got: format!("{} channels", self.image_channels),
+            });
+        }
+        self.validate()
     }
 
     /// Weight of pixel `p` in the masked mean, before normalisation.
