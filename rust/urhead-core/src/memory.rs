@@ -7,6 +7,8 @@
 
 use std::alloc::Layout;
 
+use rayon::prelude::*;
+
 use crate::error::{Error, Result};
 
 /// Buffers at least this large (bytes) are advised to use huge pages.
@@ -113,7 +115,12 @@ pub fn refill<T: Clone>(buf: &mut Vec<T>, what: &'static str, len: usize, value:
 /// Asks the kernel to back the whole 2 MiB pages inside `buf` with huge pages. Only
 /// advice: a no-op for small buffers, on other systems, or if the kernel declines.
 pub fn advise_huge_pages<T>(buf: &[T]) {
-    if let Some((start, end)) = huge_page_range(buf) {
+    advise_huge_pages_of(buf.as_ptr() as usize, std::mem::size_of_val(buf));
+}
+
+/// [`advise_huge_pages`] for the `bytes` bytes at address `base` (memory not yet written).
+fn advise_huge_pages_of(base: usize, bytes: usize) {
+    if let Some((start, end)) = huge_page_range_of(base, bytes) {
         madvise_huge(start, end - start);
     }
 }
@@ -121,12 +128,16 @@ pub fn advise_huge_pages<T>(buf: &[T]) {
 /// The address range of the whole 2 MiB pages inside `buf`, for buffers large enough to
 /// advise; None otherwise.
 fn huge_page_range<T>(buf: &[T]) -> Option<(usize, usize)> {
-    let bytes = std::mem::size_of_val(buf);
+    huge_page_range_of(buf.as_ptr() as usize, std::mem::size_of_val(buf))
+}
+
+/// [`huge_page_range`] of the `bytes` bytes at address `base`.
+fn huge_page_range_of(base: usize, bytes: usize) -> Option<(usize, usize)> {
     if bytes < HUGE_PAGE_THRESHOLD {
         return None;
     }
-    let start = (buf.as_ptr() as usize).next_multiple_of(HUGE_PAGE);
-    let end = (buf.as_ptr() as usize + bytes) / HUGE_PAGE * HUGE_PAGE;
+    let start = base.next_multiple_of(HUGE_PAGE);
+    let end = (base + bytes) / HUGE_PAGE * HUGE_PAGE;
     (end > start).then_some((start, end))
 }
 
@@ -156,6 +167,33 @@ fn discard_pages(start: usize, len: usize) {
 
 #[cfg(not(target_os = "linux"))]
 fn discard_pages(_start: usize, _len: usize) {}
+
+/// A copy of `src` named `what`, copied in parallel chunks into memory that is never
+/// zeroed first (a kernel that starts from its input image and edits a few pixels: a
+/// `zeroed` buffer then a serial copy was two serial passes over the image).
+/// `Err(OutOfMemory)` when the allocator refuses.
+pub fn copied<T: Copy + Send + Sync>(what: &'static str, src: &[T]) -> Result<Vec<T>> {
+    const CHUNK: usize = 32 << 10;
+    let mut buf: Vec<T> = Vec::new();
+    buf.try_reserve_exact(src.len()).map_err(|_| Error::OutOfMemory {
+        what,
+        elements: src.len(),
+        bytes: src.len() as u128 * std::mem::size_of::<T>() as u128,
+    })?;
+    advise_huge_pages_of(buf.as_ptr() as usize, std::mem::size_of_val(src));
+    buf.spare_capacity_mut()[..src.len()]
+        .par_chunks_mut(CHUNK)
+        .zip(src.par_chunks(CHUNK))
+        .for_each(|(dst, src)| {
+            for (d, s) in dst.iter_mut().zip(src) {
+                d.write(*s);
+            }
+        });
+    // SAFETY: the capacity is at least `src.len()` and the chunks above wrote every one of
+    // the first `src.len()` elements.
+    unsafe { buf.set_len(src.len()) };
+    Ok(buf)
+}
 
 /// `dst[..n] = src[..n]` element by element, for rows of a handful of elements (a
 /// pixel's channels): `copy_from_slice` of a length unknown at compile time is a
@@ -199,6 +237,14 @@ mod tests {
             let v: Vec<f32> = zeroed("test buffer", len).unwrap();
             assert_eq!(v.len(), len);
             assert!(v.iter().all(|&x| x == 0.0));
+        }
+    }
+
+    #[test]
+    fn copies_are_equal_whatever_their_size() {
+        for len in [0usize, 7, (32 << 10) + 3, 3 << 20] {
+            let src: Vec<f32> = (0..len).map(|i| i as f32 * 0.5 - 7.0).collect();
+            assert_eq!(copied("test copy", &src).unwrap(), src);
         }
     }
 

@@ -32,7 +32,7 @@ use super::rasterize::camera_to_world_gradient;
 use super::{check_faces, check_tri_id, TILE_ROWS};
 use crate::camera::Camera;
 use crate::error::{check_finite, check_indices, check_len, Error, Result};
-use crate::memory::zeroed;
+use crate::memory::copied;
 use crate::Real;
 
 /// Crossings up to this far outside the segment (pixels) are accepted and clamped.
@@ -510,8 +510,7 @@ pub fn antialias_forward_blends<T: Real>(inputs: &AntialiasInputs<T>) -> Result<
     let scene = inputs.scene();
     let blends: Vec<Blend> = scene.all_blends().into_iter().flatten().collect();
     let color = inputs.color;
-    let mut out = zeroed("antialiased image", color.len())?;
-    out.copy_from_slice(color);
+    let mut out = copied("antialiased image", color)?;
     for b in &blends {
         let t = b.target();
         let alpha = T::c(b.alpha);
@@ -588,8 +587,7 @@ fn backward<T: Real>(
     let color = inputs.color;
     let v_color = need_color
         .then(|| -> Result<Vec<T>> {
-            let mut v_color = zeroed("color gradient", v_out.len())?;
-            v_color.copy_from_slice(v_out);
+            let mut v_color = copied("color gradient", v_out)?;
             for b in blends {
                 let t = b.target();
                 let alpha = T::c(b.alpha);

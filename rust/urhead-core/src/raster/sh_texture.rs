@@ -31,7 +31,7 @@ use rayon::prelude::*;
 use super::taps::{bilinear_taps, prefetch_taps, Taps, TexShape, PREFETCH_DISTANCE, SAMPLE_CHUNK};
 use super::texture::{blend, validate};
 use crate::error::{check_finite, check_len, Error, Result};
-use crate::memory::zeroed;
+use crate::memory::{copy_short, zeroed};
 use crate::parallel::optional_chunks;
 use crate::sh::{direction, num_sh_coeffs, sh_basis, sh_sum, sh_sum_adjoint, unclamped};
 use crate::Real;
@@ -211,7 +211,7 @@ pub fn sh_texture_forward<T: Real>(
                     // NaN-safe clamp, as the shading op: a NaN coefficient gives NaN.
                     out[ch] = if rgb[ch] < T::zero() { T::zero() } else { rgb[ch] };
                 }
-                out[3..].copy_from_slice(&row[extra.clone()]);
+                copy_short(&mut out[3..], &row[extra.start..], extra.len());
                 if let Some(raw) = raw.as_deref_mut() {
                     raw[3 * i..3 * i + 3].copy_from_slice(&rgb);
                 }
@@ -302,7 +302,7 @@ pub fn sh_texture_backward<T: Real>(
                     let row = &mut rows[c * i..c * (i + 1)];
                     let (b, _) = sh_basis(g.degree, direction(g.dirs, s), false);
                     sh_sum_adjoint(&b, v_rgb, &mut row[..colour]);
-                    row[extra.clone()].copy_from_slice(&v[3..]);
+                    copy_short(&mut row[extra.start..], &v[3..], extra.len());
                 }
                 if let (Some(v_uv), Some(slopes)) = (v_uv.as_deref_mut(), g.slopes) {
                     if !(g.uv[2 * s].is_finite() && g.uv[2 * s + 1].is_finite()) {
