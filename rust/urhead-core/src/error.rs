@@ -1,6 +1,8 @@
 //! Typed errors shared by every kernel. Each variant names the offending argument so the
 //! Python binding can raise a specific exception with a message a user can act on.
 
+use std::ops::Range;
+
 use rayon::prelude::*;
 
 /// What can be wrong with a kernel's inputs. Checked before any work is done.
@@ -101,18 +103,48 @@ pub fn check_indices<I: Copy + Into<i64> + Sync>(
 const SCAN_BLOCK: usize = 16_384;
 
 /// The index of the first element for which `bad` holds. Inputs are checked on every
-/// kernel call, so the scan is made cheap: a block is reduced without an early exit (a
-/// branch-free `bad` then vectorises; an early-exit search runs an element a cycle), blocks
-/// in parallel on large inputs, and only the first bad block is searched element by element.
+/// kernel call, so the scan is made cheap: see [`first_in_blocks`].
 pub(crate) fn first_where<T: Sync>(data: &[T], bad: impl Fn(&T) -> bool + Sync) -> Option<usize> {
-    let any_bad = |block: &[T]| block.iter().fold(false, |found, x| found | bad(x));
-    let block = if data.len() > 4 * SCAN_BLOCK {
-        data.par_chunks(SCAN_BLOCK).position_first(any_bad)
+    first_in_blocks(
+        data.len(),
+        |items| data[items].iter().fold(false, |found, x| found | bad(x)),
+        |i| bad(&data[i]),
+    )
+}
+
+/// The index `i ≥ 1` of the first element for which `bad(data[i − 1], data[i])` holds (a
+/// list that must increase, say); scanned as [`first_where`].
+pub(crate) fn first_pair_where<T: Sync>(data: &[T], bad: impl Fn(&T, &T) -> bool + Sync) -> Option<usize> {
+    let pair_bad = |w: &[T]| bad(&w[0], &w[1]);
+    first_in_blocks(
+        data.len().saturating_sub(1),
+        |pairs| {
+            data[pairs.start..pairs.end + 1]
+                .windows(2)
+                .fold(false, |found, w| found | pair_bad(w))
+        },
+        |i| pair_bad(&data[i..i + 2]),
+    )
+    .map(|i| i + 1)
+}
+
+/// The first of `len` items for which `is_bad` holds. `any_bad` answers for a block of
+/// items at once, without an early exit (a branch-free test then vectorises; an early-exit
+/// search runs an item a cycle); blocks are tested in parallel on large inputs, and only
+/// the first bad block is searched item by item.
+fn first_in_blocks(
+    len: usize,
+    any_bad: impl Fn(Range<usize>) -> bool + Sync,
+    is_bad: impl Fn(usize) -> bool,
+) -> Option<usize> {
+    let block = |b: usize| b * SCAN_BLOCK..((b + 1) * SCAN_BLOCK).min(len);
+    let blocks = len.div_ceil(SCAN_BLOCK);
+    let first = if len > 4 * SCAN_BLOCK {
+        (0..blocks).into_par_iter().position_first(|b| any_bad(block(b)))
     } else {
-        data.chunks(SCAN_BLOCK).position(any_bad)
+        (0..blocks).position(|b| any_bad(block(b)))
     }?;
-    let start = block * SCAN_BLOCK;
-    data[start..].iter().position(bad).map(|i| start + i)
+    block(first).find(|&i| is_bad(i))
 }
 
 /// Product of `dims` with overflow and limit checks, for allocation sizes.
@@ -171,6 +203,29 @@ mod tests {
         // Subnormals, signed zeros and the extremes are finite.
         let edge = [f32::MIN_POSITIVE / 2.0, -0.0, f32::MAX, f32::MIN];
         assert_eq!(check_finite("z", &edge), Ok(()));
+    }
+
+    #[test]
+    fn first_pair_where_names_the_second_element_of_the_first_bad_pair() {
+        for len in LENGTHS {
+            let mut data: Vec<i64> = (0..len as i64).collect();
+            assert_eq!(first_pair_where(&data, |a, b| a >= b), None);
+            if len < 3 {
+                continue;
+            }
+            for at in [1, len / 2, len - 1] {
+                let mut bad = data.clone();
+                bad[at] = bad[at - 1]; // a repeat
+                bad[len - 1] = -1; // and a later drop
+                let expected = if at == len - 1 { len - 1 } else { at };
+                assert_eq!(first_pair_where(&bad, |a, b| a >= b), Some(expected), "len {len}");
+            }
+            data[SCAN_BLOCK.min(len - 1)] = -5; // across a block boundary
+            assert_eq!(
+                first_pair_where(&data, |a, b| a >= b),
+                Some(SCAN_BLOCK.min(len - 1))
+            );
+        }
     }
 
     #[test]

@@ -13,7 +13,7 @@
 
 use rayon::prelude::*;
 
-use crate::error::{check_len, Error, Result};
+use crate::error::{check_len, first_pair_where, Error, Result};
 use crate::memory::{copy_short, zeroed};
 use crate::Real;
 
@@ -70,7 +70,7 @@ impl ScatterInputs<'_> {
             });
         }
         let n = self.pixel_count as i64;
-        let bad = first_non_increase(self.pixels)
+        let bad = first_pair_where(self.pixels, |a, b| a >= b)
             .or_else(|| (self.pixels.first().is_some_and(|&p| p < 0)).then_some(0))
             .or_else(|| (self.pixels.last().is_some_and(|&p| p >= n)).then(|| self.pixels.len() - 1));
         if let Some(i) = bad {
@@ -97,18 +97,6 @@ impl ScatterInputs<'_> {
         let last = first + self.pixels[first..].partition_point(|&p| p < end);
         (first, &self.pixels[first..last])
     }
-}
-
-/// The index of the first entry of `list` not above the one before it.
-fn first_non_increase(list: &[i64]) -> Option<usize> {
-    let chunks = list.len().div_ceil(CHUNK);
-    (0..chunks).into_par_iter().find_map_first(|chunk| {
-        // Each chunk's pairs, the first reaching back into the chunk before.
-        let pairs = &list[(chunk * CHUNK).max(1) - 1..((chunk + 1) * CHUNK).min(list.len())];
-        // A branch-free test vectorises; only a failing chunk is searched.
-        let fails = pairs.windows(2).fold(false, |bad, w| bad | (w[0] >= w[1]));
-        fails.then(|| (chunk * CHUNK).max(1) + pairs.windows(2).position(|w| w[0] >= w[1]).unwrap())
-    })
 }
 
 /// `(H·W, C)`: `background` everywhere, `values[i]` at pixel `pixels[i]`. `values (P, C)`

@@ -22,7 +22,7 @@ pub fn masked_l1<T: Real>(inputs: &SsimInputs<'_, T>) -> Result<T> {
         .zip(inputs.target.par_chunks(BAND_ROWS * len))
         .enumerate()
         .map(|(band, (x, y))| {
-            let (mut mask, mut gathered) = (vec![T::zero(); len], vec![T::zero(); len]);
+            let (mut mask, mut gathered) = (vec![T::zero(); len], gather_buffer(inputs));
             let mut total = 0.0;
             for (i, (x, y)) in x.chunks_exact(image_len).zip(y.chunks_exact(len)).enumerate() {
                 expand_mask_row(inputs, band * BAND_ROWS + i, &mut mask);
@@ -49,8 +49,8 @@ pub fn masked_l1_with_grad<T: Real>(inputs: &SsimInputs<'_, T>) -> Result<(T, Ve
         .zip(inputs.target.par_chunks(BAND_ROWS * len))
         .enumerate()
         .map(|(band, ((grad, x), y))| {
-            let (mut mask, mut gathered) = (vec![T::zero(); len], vec![T::zero(); len]);
-            let mut slopes = if s == c { Vec::new() } else { vec![T::zero(); len] };
+            let (mut mask, mut gathered) = (vec![T::zero(); len], gather_buffer(inputs));
+            let mut slopes = gather_buffer(inputs);
             let mut total = 0.0;
             let image_rows = grad.chunks_exact_mut(image_len).zip(x.chunks_exact(image_len));
             for (i, ((g, x), y)) in image_rows.zip(y.chunks_exact(len)).enumerate() {
@@ -95,6 +95,13 @@ fn row_lengths<T>(inputs: &SsimInputs<'_, T>) -> (usize, usize) {
         inputs.width * inputs.channels,
         inputs.width * inputs.image_channels,
     )
+}
+
+/// A row buffer in the target's layout (`W·C`) for an image wider than the target; empty
+/// when they match (nothing is gathered then).
+fn gather_buffer<T: Real>(inputs: &SsimInputs<'_, T>) -> Vec<T> {
+    let wider = inputs.image_channels != inputs.channels;
+    vec![T::zero(); if wider { inputs.width * inputs.channels } else { 0 }]
 }
 
 /// Image row `x` (`W·S`) in the target's layout (`W·C`): itself when `S = C`, else its
