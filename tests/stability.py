@@ -73,11 +73,12 @@ CASES = {
     30: "Empty mask, head partly/wholly off-screen, constant colour, one training frame",
     31: "Every rate ×10 and ×0.1, aggressive FLAME rates; bad steps rolled back, never saved",
     32: "Long run at reduced size: finite, Gaussians within budget, memory flat",
-    # urhead's own addition to NUMERICS.md's list (issue 15: reduced-precision state).
+    # urhead's own additions to NUMERICS.md's list (issue 15: reduced precision).
     33: "bfloat16 Adam moments: v decays as exact v does; steps follow the float64 reference",
+    34: "float16 maps for frozen rendering: within float16 rounding; out of range falls back",
 }
 GROUPS = [
-    ("Mesh raster / interpolate / texture / antialias", range(1, 9)),
+    ("Mesh raster / interpolate / texture / antialias", [*range(1, 9), 34]),
     ("Gaussian splatting", range(9, 22)),
     ("Skinning", range(22, 25)),
     ("Optimiser", [25, 33]),
@@ -347,7 +348,8 @@ def render_report(
         "covered exactly) shows how many inputs it covered. A case passes only if every check "
         "held and every test listed for it passed; a case no test recorded a check for is "
         "MISSING. The cases are those of NUMERICS.md (design notes shared by the project), "
-        "with case 33 (bfloat16 optimiser moments) added by urhead.",
+        "with cases 33 (bfloat16 optimiser moments) and 34 (float16 maps for rendering) "
+        "added by urhead.",
         "",
         f"- run: {datetime.datetime.now(datetime.UTC):%Y-%m-%d %H:%M} UTC, commit "
         f"`{git_commit()}`, {len(outcomes)} tests, {len(records)} records",

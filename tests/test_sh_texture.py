@@ -236,3 +236,114 @@ def test_avatar_mesh_branch_matches_the_lookup_path(shading, monkeypatch):
     assert torch.equal(s_uv, expected[2]) and torch.equal(s_rows, expected[3])
     assert s_rows[:, avatar.layout.normal].ne(0).any()
     assert torch.allclose(g_verts, expected[4], rtol=1e-4, atol=1e-5 * expected[4].abs().max())
+
+
+# --- NUMERICS.md case 34 (urhead's own): float16 maps for frozen rendering ---------------
+
+
+def test_case34_a_float16_texture_reads_as_its_float32_widening_exactly(stability):
+    """Values and the UV gradient from a float16 texture are those of the float32 texture
+    it widens to, bit for bit (the kernel widens each texel exactly, then runs the float32
+    code), on both sides of the edge and with the extra channels."""
+    tex, uv, dirs = _case(n=2000, size=(40, 31), dtype=torch.float32, seed=11)
+    half = tex.half()
+    weights = torch.randn(2000, 6, generator=torch.Generator().manual_seed(12))
+    results = []
+    for source in (half, half.float()):
+        u = uv.clone().requires_grad_(True)
+        out = sh_texture(source, u, dirs, 3, NORMAL)
+        (out * weights).sum().backward()
+        results.append((out.detach(), u.grad))
+    assert torch.equal(results[0][0], results[1][0])
+    assert torch.equal(results[0][1], results[1][1])
+    stability.checked(34, "float16 tex: values and UV gradient = its float32 widening's", 2000)
+
+
+@pytest.mark.parametrize("degree", [0, 3])
+def test_case34_float16_maps_stay_within_float16_rounding(degree, stability):
+    """Against the float32 maps, the colour from their float16 copy errs by no more than
+    the rounding of each coefficient (half a float16 spacing, ≤ 2⁻¹¹ relative, or 2⁻²⁵
+    absolute below the smallest normal) weighted by its SH basis value — over maps that
+    span float16's range: coefficients near ±65504, subnormal ones and typical ones."""
+    g = torch.Generator().manual_seed(degree)
+    n, size = 3000, (24, 20)
+    tex = torch.randn(*size, CHANNELS, generator=g) * 0.5
+    tex[0, :, :3] = 65000.0 * torch.sign(torch.randn(size[1], 3, generator=g))
+    tex[1] = torch.randn(size[1], CHANNELS, generator=g) * 1e-6  # float16 subnormals
+    tex[2] = torch.randn(size[1], CHANNELS, generator=g) * 300.0
+    uv = torch.rand(n, 2, generator=g)
+    dirs = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=1)
+    half = urhead.ops.half_maps(tex)
+    assert half is not None and half.dtype == torch.float16
+    ours = sh_texture(half, uv, dirs, degree, NORMAL).double()
+    exact = _reference.sh_texture(tex.double(), uv.double(), dirs.double(), degree, NORMAL)
+    # Bound: Σ_k |b_k| · Σ_taps w · r(|c|), r(x) = max(x·2⁻¹¹, 2⁻²⁵), plus float32
+    # arithmetic on the result (2⁻²³ relative of the terms' size, a few operations).
+    rounding = torch.clamp(tex.double().abs() * 2.0**-11, min=2.0**-25)
+    sizes = tex.double().abs()
+    per_tap = _reference.texture(torch.cat([rounding, sizes], -1), uv.double())
+    coefficients = 3 * (degree + 1) ** 2
+    basis = _reference.sh_basis(dirs.double(), degree).abs()  # (n, K)
+    colour_rounding = per_tap[:, :coefficients].reshape(n, -1, 3)
+    colour_size = per_tap[:, CHANNELS : CHANNELS + coefficients].reshape(n, -1, 3)
+    bound = torch.einsum("nk,nkc->nc", basis, colour_rounding)
+    bound = bound + 8 * 2.0**-23 * (torch.einsum("nk,nkc->nc", basis, colour_size) + 0.5)
+    normal_bound = per_tap[:, NORMAL] + 4 * 2.0**-23 * per_tap[:, CHANNELS:][:, NORMAL]
+    worst = max(
+        ((ours[:, :3] - exact[:, :3]).abs() / bound).max().item(),
+        ((ours[:, 3:] - exact[:, 3:]).abs() / normal_bound).max().item(),
+    )
+    stability.record(34, f"float16 maps, degree {degree}: error / rounding bound", worst, 1.0)
+
+
+def test_case34_maps_out_of_float16_range_get_no_float16_copy(stability):
+    """Maps float16 cannot hold (a value beyond ±65504, or non-finite) get no copy, so the
+    avatar keeps reading float32; the largest finite float16 itself is kept."""
+    tex = torch.zeros(4, 4, CHANNELS)
+    tex[1, 2, 7] = 65504.0
+    assert urhead.ops.half_maps(tex)[1, 2, 7].item() == 65504.0
+    cases = [7.0e4, -7.0e4, float("inf"), float("nan")]
+    for value in cases:
+        tex[3, 0, 50] = value
+        assert urhead.ops.half_maps(tex) is None, value
+    stability.checked(34, "maps beyond float16's range or non-finite: no float16 copy", 4)
+
+
+def test_float16_texture_errors_are_named():
+    tex, uv, dirs = _case(n=6, dtype=torch.float32)
+    half = tex.half()
+    with pytest.raises(InvalidArgumentError, match="float16 tex is read-only"):
+        sh_texture(half.clone().requires_grad_(True), uv, dirs, 3)
+    with pytest.raises(InvalidArgumentError, match="float16 tex is read-only"):
+        sh_texture(half, uv, dirs, 3, gather=TextureGather(tex))
+    with pytest.raises(DTypeError, match=r"uv must be torch\.float32"):
+        sh_texture(half, uv.double(), dirs, 3)
+    with pytest.raises(DTypeError, match="float32"):
+        urhead.ops.half_maps(tex.double())
+    inf_tex = half.clone()
+    inf_tex[:] = float("inf")
+    with pytest.raises(NonFiniteError, match="tex"):
+        sh_texture(inf_tex, uv, dirs, 3)
+
+
+def test_avatar_reads_a_kept_float16_copy_only_while_its_maps_are_frozen():
+    """A frozen avatar's mesh branch reads one float16 copy of its maps, kept until the
+    maps are edited in place; a fit's maps (requiring grad, or with a gather) are read
+    as they are. The frozen image is within float16 rounding of the float32 one."""
+    avatar = make_avatar(procedural_head(0), gaussians=False, sh_degree=3)
+    maps = avatar.maps
+    assert not maps.requires_grad
+    copy = avatar.pixel_maps_source()
+    assert copy.dtype == torch.float16 and avatar.pixel_maps_source() is copy
+    assert avatar.pixel_maps_source(TextureGather(maps)) is maps
+    with torch.no_grad():  # an in-place edit (values float16 cannot hold): the copy is stale
+        maps += torch.randn(maps.shape, generator=torch.Generator().manual_seed(0)) * 0.1
+    fresh = avatar.pixel_maps_source()
+    assert fresh is not copy and torch.allclose(fresh.float(), maps, rtol=2.0**-11, atol=1e-7)
+    params, cam = avatar.frame(3), camera(64)
+    verts, rotations = avatar.skin(params)
+    frozen = avatar.shade_mesh(verts, verts, rotations, cam, False).image
+    maps.requires_grad_(True)
+    assert avatar.pixel_maps_source() is maps
+    trained = avatar.shade_mesh(verts, verts, rotations, cam, False).image.detach()
+    assert 0 < (frozen - trained).abs().max() <= 2e-3

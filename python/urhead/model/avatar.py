@@ -27,6 +27,7 @@ from urhead.ops import (
     antialias_topology,
     composite,
     covered_pixels,
+    half_maps,
     interpolate,
     lbs,
     lift_gaussians_geometry,
@@ -292,18 +293,37 @@ class Avatar:
         in-place edit bumps either's version): a rendered sequence looks them up once, not
         every frame. A fit's maps require grad, so its lookups are never kept. The rows
         returned are shared: do not edit them in place."""
-        maps = self.maps
-        if gather is not None or maps.requires_grad or uv.requires_grad:
+        if gather is not None or self.maps.requires_grad or uv.requires_grad:
             return self.lookup(uv, gather)
-        kept = self._frozen_rows
-        held = kept.get("maps")
-        if held is None or held[0] is not maps or held[1] != maps._version:
-            kept.clear()  # other maps, or these edited in place: every kept row is stale
-            kept["maps"] = (maps, maps._version)
+        kept = self._kept_for_maps()
         entry = kept.get(id(uv))  # the entry holds uv itself, so its id is not reused
         if entry is None or entry[1] != uv._version:
-            entry = kept[id(uv)] = (uv, uv._version, texture(maps, uv))
+            entry = kept[id(uv)] = (uv, uv._version, texture(self.maps, uv))
         return entry[2]
+
+    def _kept_for_maps(self) -> dict:
+        """What is kept for the frozen maps (rows at fixed UV points, their float16 copy),
+        emptied first if the maps are other ones or were edited in place."""
+        maps, kept = self.maps, self._frozen_rows
+        held = kept.get("maps")
+        if held is None or held[0] is not maps or held[1] != maps._version:
+            kept.clear()  # other maps, or these edited in place: everything kept is stale
+            kept["maps"] = (maps, maps._version)
+        return kept
+
+    def pixel_maps_source(self, gather: TextureGather | None = None) -> torch.Tensor:
+        """The maps the mesh branch's covered pixels read: while the maps are frozen (no
+        gradient asked of them, no gather) a float16 copy, made once and kept until they
+        change — half the bytes for the pixels' random texel reads, the values within
+        float16 rounding (NUMERICS.md case 34); otherwise, or for maps out of float16's
+        range, the maps themselves."""
+        if gather is not None or self.maps.requires_grad or self.maps.dtype != torch.float32:
+            return self.maps
+        kept = self._kept_for_maps()
+        if "float16" not in kept:
+            kept["float16"] = half_maps(self.maps)
+        half = kept["float16"]
+        return self.maps if half is None else half
 
     def displace(self, verts, rotations, gather=None) -> tuple[torch.Tensor, torch.Tensor]:
         """``(v̂ (V, 3), v̂ − v)``: each vertex moved by D along its posed normal."""
@@ -338,7 +358,12 @@ class Avatar:
         # whose backward does not read the maps again.
         extra = self._pixel_maps(want_normals)
         pixel_maps = sh_texture(
-            self.maps, uv, local, self._sh_degree(sh_degree), extra, gather=gather
+            self.pixel_maps_source(gather),
+            uv,
+            local,
+            self._sh_degree(sh_degree),
+            extra,
+            gather=gather,
         )
         rgb = pixel_maps[:, :3]
         if layout.shading:

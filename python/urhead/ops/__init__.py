@@ -11,7 +11,7 @@ from urhead.ops.lift import LiftOutput, lift_gaussians_geometry
 from urhead.ops.pixels import covered_pixels, scatter_pixels
 from urhead.ops.rasterize import RasterOutput, UvRasterOutput, rasterize, rasterize_uv
 from urhead.ops.rotate import rotate_normalize
-from urhead.ops.sh_texture import sh_texture
+from urhead.ops.sh_texture import half_maps, sh_texture
 from urhead.ops.shading import sh_shade
 from urhead.ops.splat import SplatOutput, normal_to_quat, rasterize_gaussians
 from urhead.ops.ssim import masked_l1, masked_ssim
@@ -30,6 +30,7 @@ __all__ = [
     "antialias_topology",
     "composite",
     "covered_pixels",
+    "half_maps",
     "interpolate",
     "lbs",
     "lift_gaussians_geometry",

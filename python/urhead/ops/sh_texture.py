@@ -8,7 +8,15 @@ import torch
 
 from urhead._threads import num_threads
 from urhead.errors import DTypeError, InvalidArgumentError
-from urhead.ops._bridge import check_shape, float_dtype, from_numpy, grad_to_numpy, native, to_numpy
+from urhead.ops._bridge import (
+    check_shape,
+    check_tensor,
+    float_dtype,
+    from_numpy,
+    grad_to_numpy,
+    native,
+    to_numpy,
+)
 from urhead.ops.texture import TextureGather, texture_gradient
 
 
@@ -16,10 +24,10 @@ class _ShTexture(torch.autograd.Function):
     @staticmethod
     def forward(ctx, tex, uv, dirs, degree, extra, gather):
         source = tex.detach() if gather is None else gather.tex
-        dtype = source.dtype
+        dtype = uv.dtype  # the texture's, or float32 for a float16 texture
         wants_grad = ctx.needs_input_grad[0] or ctx.needs_input_grad[1]
         values, raw_rgb, slopes = native("sh_texture_forward")(
-            to_numpy("tex", source, dtype),
+            to_numpy("tex", source, source.dtype),
             to_numpy("uv", uv, dtype),
             to_numpy("dirs", dirs, dtype),
             degree,
@@ -48,7 +56,7 @@ class _ShTexture(torch.autograd.Function):
             ctx.extra,
             raw_rgb.numpy(),
             None if slopes is None else slopes.numpy(),
-            grad_to_numpy("v_values", v_values, tex.dtype),
+            grad_to_numpy("v_values", v_values, uv.dtype),
             need_tex,
             num_threads(),
         )
@@ -77,8 +85,12 @@ def sh_texture(
     Args:
         tex: (Ht, Wt, C) texture whose first 3·(degree + 1)² channels are SH coefficients,
             coefficient-major (as :func:`~urhead.ops.sh_shade` reads them), float32 or
-            float64, contiguous; usually a parameter.
-        uv: (P, 2) texture coordinates, the :func:`~urhead.ops.texture` convention.
+            float64, contiguous; usually a parameter. Or a float16 copy of one that is
+            frozen (no gradient, no ``gather``), read in float32 — half the bytes for a
+            rendered avatar's maps, values those of its float32 widening exactly
+            (:func:`half_maps` makes such a copy).
+        uv: (P, 2) texture coordinates, the :func:`~urhead.ops.texture` convention, of
+            ``tex``'s dtype (float32 for a float16 ``tex``).
         dirs: (P, 3) unit view directions; constants (no gradient flows to them), finite.
         degree: 0–3.
         extra: channels after the colour to return as they are (e.g. the normal map), or
@@ -97,11 +109,22 @@ def sh_texture(
     zeros (colour 0.5) and passes none to ``uv``. Every sample is independent: the same bits
     for any thread count. Threads: ``URHEAD_NUM_THREADS`` or ``torch.get_num_threads()``.
     """
-    dtype = float_dtype("tex", tex)
+    if isinstance(tex, torch.Tensor) and tex.dtype == torch.float16:
+        check_tensor("tex", tex)
+        if tex.requires_grad or gather is not None:
+            raise InvalidArgumentError(
+                "a float16 tex is read-only: it must not require grad nor have a gather "
+                "(train on the float32 maps)"
+            )
+        dtype = torch.float32
+    else:
+        dtype = float_dtype("tex", tex)
     check_shape("tex", tex, 3, None, "(Ht, Wt, C)")
     for name, t, width in (("uv", uv, 2), ("dirs", dirs, 3)):
         if t.dtype != dtype:
-            raise DTypeError(f"{name} must have the dtype of tex ({dtype}), got {t.dtype}")
+            raise DTypeError(
+                f"{name} must be {dtype} (tex's dtype; float32 for float16 tex), got {t.dtype}"
+            )
         check_shape(name, t, 2, width, f"(P, {width})")
     if isinstance(degree, bool) or not isinstance(degree, int) or not 0 <= degree <= 3:
         raise InvalidArgumentError(f"degree must be an int in [0, 3], got {degree!r}")
@@ -119,3 +142,30 @@ def sh_texture(
         (int(extra.start), int(extra.stop)),
         gather,
     )
+
+
+HALF_MAX = 65504.0
+"""The largest finite float16."""
+
+
+def half_maps(tex: torch.Tensor) -> torch.Tensor | None:
+    """A float16 copy of a frozen float32 texture for :func:`sh_texture` to read (half the
+    bytes: a rendered avatar's lookups are bound by the cache lines they read), or None
+    when a value is non-finite or beyond float16's range (±65504): the caller keeps
+    reading ``tex``. Values keep 2⁻¹¹ relative precision (round to nearest); those below
+    float16's smallest normal (6.1e-5) keep an absolute one of 3e-8 (NUMERICS.md case 34).
+
+    Args:
+        tex: (Ht, Wt, C) float32, contiguous.
+
+    Returns:
+        (Ht, Wt, C) float16, or None."""
+    check_tensor("tex", tex)
+    if tex.dtype != torch.float32:
+        raise DTypeError(f"tex must be float32, got {tex.dtype}")
+    detached = tex.detach()
+    if detached.numel():
+        low, high = torch.aminmax(detached)  # no |tex| temporary the size of the maps
+        if not bool((low >= -HALF_MAX) & (high <= HALF_MAX)):  # False for NaN too
+            return None
+    return detached.to(torch.float16).contiguous()

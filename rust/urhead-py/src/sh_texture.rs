@@ -1,11 +1,12 @@
 //! Binding of `urhead_core::raster::sh_texture`: a texture lookup shaded with spherical
 //! harmonics in one pass (plus a range of channels as they are), forward and adjoint, each
-//! entry point serving float32 and float64.
+//! entry point serving float32 and float64 (and a float16 texture read in float32).
 
-use numpy::{Element, PyReadonlyArrayDyn};
+use half::f16;
+use numpy::{Element, PyArrayDyn, PyArrayMethods, PyReadonlyArrayDyn};
 use pyo3::prelude::*;
 use pyo3::types::PyTuple;
-use urhead_core::raster::{self as kernel, ShTextureGradInputs, ShTextureInputs};
+use urhead_core::raster::{self as kernel, ShTextureGradInputs, ShTextureInputs, Texel};
 use urhead_core::Real;
 
 use crate::arrays::{array, data, optional, optional_array, shape, with_float_type};
@@ -14,9 +15,9 @@ use crate::pool::with_threads;
 
 type Arr<'py, T> = PyReadonlyArrayDyn<'py, T>;
 
-fn forward<'py, T: Element + Real>(
+fn forward<'py, T: Element + Real, S: Element + Texel<T>>(
     py: Python<'py>,
-    tex: Arr<'py, T>,
+    tex: Arr<'py, S>,
     uv: Arr<'py, T>,
     dirs: Arr<'py, T>,
     degree: usize,
@@ -104,7 +105,8 @@ fn backward<'py, T: Element + Real>(
 
 /// `(values (N, 3 + E), raw_rgb (N, 3) or None, slopes (N, 2, 3 + E) or None)`: the SH
 /// colour of `tex (Ht, Wt, C)` at `uv (N, 2)` along `dirs (N, 3)`, then the channels
-/// `extra = (start, end)`; `wants = (raw_rgb, slopes)`.
+/// `extra = (start, end)`; `wants = (raw_rgb, slopes)`. A float16 `tex` is read in
+/// float32 (`uv` and `dirs` float32).
 #[pyfunction]
 pub fn sh_texture_forward<'py>(
     py: Python<'py>,
@@ -116,7 +118,19 @@ pub fn sh_texture_forward<'py>(
     wants: (bool, bool),
     num_threads: usize,
 ) -> PyResult<Bound<'py, PyTuple>> {
-    with_float_type!(tex, T => forward::<T>(
+    if let Ok(half) = tex.downcast::<PyArrayDyn<f16>>() {
+        return forward::<f32, f16>(
+            py,
+            half.readonly(),
+            uv.extract()?,
+            dirs.extract()?,
+            degree,
+            extra,
+            wants,
+            num_threads,
+        );
+    }
+    with_float_type!(tex, T => forward::<T, T>(
         py,
         tex.extract()?,
         uv.extract()?,

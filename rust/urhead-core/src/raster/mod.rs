@@ -43,6 +43,7 @@ mod setup;
 mod sh_texture;
 mod sparse;
 mod taps;
+mod texel;
 mod texture;
 mod topology;
 mod uv;
@@ -62,6 +63,7 @@ pub use sh_texture::{
     ShTextureOutput,
 };
 pub use sparse::{SparseTexels, TexelEntries, TextureSamples};
+pub use texel::Texel;
 pub use texture::{texture_backward, texture_forward, texture_gradient_entries, TextureGrads};
 pub use topology::edge_topology;
 pub use uv::rasterize_uv;

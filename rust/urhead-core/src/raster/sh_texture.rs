@@ -20,6 +20,9 @@
 //! UV gradient equals [`texture_backward`](super::texture_backward)'s up to rounding (it is
 //! summed over the outputs instead of over the channels).
 //!
+//! The texture may be stored as float16 ([`Texel`]) for a forward computing in f32: the
+//! values are then those of the f32 texture the float16 one widens to, exactly.
+//!
 //! Texture conventions are the lookup's (OBJ UVs, clamp-to-edge; a sample with a
 //! non-finite coordinate reads zeros — colour 0.5 — and passes no UV gradient). Directions
 //! are constants and must be finite.
@@ -29,6 +32,7 @@ use std::ops::Range;
 use rayon::prelude::*;
 
 use super::taps::{bilinear_taps, prefetch_taps, Taps, TexShape, PREFETCH_DISTANCE, SAMPLE_CHUNK};
+use super::texel::Texel;
 use super::texture::{blend, validate};
 use crate::error::{check_finite, check_len, Error, Result};
 use crate::memory::{copy_short, zeroed};
@@ -36,11 +40,11 @@ use crate::parallel::optional_chunks;
 use crate::sh::{direction, num_sh_coeffs, sh_basis, sh_sum, sh_sum_adjoint, unclamped};
 use crate::Real;
 
-/// What the forward reads.
+/// What the forward reads (`S`: the texture's element type, `T` or float16).
 #[derive(Debug, Clone)]
-pub struct ShTextureInputs<'a, T> {
+pub struct ShTextureInputs<'a, T, S = T> {
     /// `(Ht, Wt, C)` texture; channel `3k + c` is SH coefficient `k` of colour `c`.
-    pub tex: &'a [T],
+    pub tex: &'a [S],
     pub height: usize,
     pub width: usize,
     pub channels: usize,
@@ -139,8 +143,8 @@ fn texel_slopes<T: Real>(d_fx: &mut [T], d_fy: &mut [T], rows: [&[T]; 4], t: &Ta
 ///
 /// Texels are checked for finiteness lazily, as the lookup does: only if a value comes out
 /// non-finite is the texture scanned, and the error names the first non-finite texel.
-pub fn sh_texture_forward<T: Real>(
-    inputs: &ShTextureInputs<'_, T>,
+pub fn sh_texture_forward<T: Real, S: Texel<T>>(
+    inputs: &ShTextureInputs<'_, T, S>,
     for_backward: bool,
     slopes: bool,
 ) -> Result<ShTextureOutput<T>> {
@@ -182,6 +186,8 @@ pub fn sh_texture_forward<T: Real>(
                 .collect();
             // The sample's interpolated row and its texel-axis slopes (used channels only).
             let mut row = vec![T::zero(); c];
+            let mut widened = vec![T::zero(); 4 * c]; // float16 rows as T
+            let used = [&(0..colour), &extra];
             let (mut d_fx, mut d_fy) = (vec![T::zero(); c], vec![T::zero(); c]);
             for (i, out) in values.chunks_exact_mut(width).enumerate() {
                 if let Some(Some(ahead)) = taps.get(i + PREFETCH_DISTANCE) {
@@ -189,7 +195,7 @@ pub fn sh_texture_forward<T: Real>(
                 }
                 match &taps[i] {
                     Some(t) => {
-                        let rows = t.texel.map(|k| &inputs.tex[k as usize * c..(k as usize + 1) * c]);
+                        let rows = S::rows(inputs.tex, t.texel, c, used, &mut widened);
                         blend(&mut row[..colour], rows, t.weight);
                         blend(&mut row[extra.clone()], rows.map(|r| &r[extra.start..]), t.weight);
                         if slope_out.is_some() {
@@ -239,7 +245,7 @@ pub fn sh_texture_forward<T: Real>(
         })
         .reduce(|| false, |a, b| a | b);
     if non_finite {
-        check_finite("tex", inputs.tex)?;
+        S::check_finite("tex", inputs.tex)?;
     }
     Ok(ShTextureOutput {
         values,

@@ -52,7 +52,7 @@ pub(crate) fn bilinear_taps<T: Real>(u: T, v: T, shape: &TexShape) -> Option<Tap
 
 /// Starts loading a sample's texel rows: the two taps of a row are adjacent in memory.
 #[inline(always)]
-pub(crate) fn prefetch_taps<T: Real>(t: &Taps<T>, tex: &[T], c: usize) {
+pub(crate) fn prefetch_taps<T: Real, S>(t: &Taps<T>, tex: &[S], c: usize) {
     for pair in [[t.texel[0], t.texel[1]], [t.texel[2], t.texel[3]]] {
         let (lo, hi) = (pair[0].min(pair[1]) as usize, pair[0].max(pair[1]) as usize);
         prefetch(&tex[lo * c..(hi + 1) * c]);

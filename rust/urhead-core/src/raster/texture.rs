@@ -44,7 +44,7 @@ pub(crate) fn blend<T: Real>(o: &mut [T], rows: [&[T]; 4], w: [T; 4]) {
     }
 }
 
-pub(crate) fn validate<T: Real>(tex: &[T], shape: &TexShape, uv: &[T]) -> Result<usize> {
+pub(crate) fn validate<T: Real, S>(tex: &[S], shape: &TexShape, uv: &[T]) -> Result<usize> {
     let n = validate_layout(shape, uv)?;
     check_len(
         "tex",
