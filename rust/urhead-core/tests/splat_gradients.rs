@@ -237,3 +237,81 @@ fn case27_same_bits_for_any_thread_count() {
             .all(|(a, b)| a.to_bits() == b.to_bits()));
     }
 }
+
+fn raster_inputs<'a>(
+    s: &'a SyntheticSplat<f32>,
+    proj: &'a urhead_core::splat::Projected<f32>,
+    depth_map: Option<&'a [f32]>,
+) -> RasterInputs<'a, f32> {
+    RasterInputs {
+        means2d: &proj.means2d,
+        conics: &proj.conics,
+        colors: proj.colors.as_ref().unwrap(),
+        opacities: &s.opacities,
+        depths: &proj.depths,
+        radii: &proj.radii,
+        num_gaussians: s.num_gaussians,
+        channels: 3,
+        width: SIZE as usize,
+        height: SIZE as usize,
+        background: None,
+        depth_map,
+        depth_eps: 0.01,
+    }
+}
+
+/// With a mesh depth map, a Gaussian is not listed in the tiles where it lies behind the
+/// mesh at every pixel, and only there; the gradients are those of listing it everywhere
+/// (the backward replayed on the uncut lists), the same values.
+#[test]
+fn gaussians_hidden_in_a_whole_tile_are_not_listed_there() {
+    let s = scene::<f32>(400, 10);
+    let px = (SIZE * SIZE) as usize;
+    let mut rng = Rng::new(11);
+    let w_img = rng.vec::<f32>(px * 3, -1.0, 1.0);
+    let w_t = rng.vec::<f32>(px, -1.0, 1.0);
+    // A plane through the head, nearer on the left: hides some Gaussians in whole tiles.
+    let depth: Vec<f32> = (0..px)
+        .map(|p| 0.66 + 0.004 * (p % SIZE as usize) as f32)
+        .collect();
+    let inputs = s.inputs(Some(3));
+    let proj = project_forward(&s.camera, &inputs).unwrap();
+    let raster = |depth_map| raster_inputs(&s, &proj, depth_map);
+    type L = <f32 as SplatReal>::Fast;
+    let occluded = raster(Some(&depth));
+    let culled = rasterize_forward_with::<L>(&occluded).unwrap().binning;
+    let uncut = rasterize_forward_with::<L>(&raster(None)).unwrap().binning;
+    // Each tile's list is the uncut one without the Gaussians deeper than all its limits.
+    let tile = 16usize;
+    let mut dropped = 0;
+    for t in 0..uncut.tiles_x * uncut.tiles_y {
+        let (tx, ty) = (t % uncut.tiles_x, t / uncut.tiles_x);
+        let deepest = (ty * tile..((ty + 1) * tile).min(SIZE as usize))
+            .flat_map(|y| (tx * tile..((tx + 1) * tile).min(SIZE as usize)).map(move |x| (x, y)))
+            .map(|(x, y)| depth[y * SIZE as usize + x] + 0.01)
+            .fold(f32::NEG_INFINITY, f32::max);
+        let list = |b: &urhead_core::splat::Binning| {
+            b.tile_gaussians[b.tile_offsets[t] as usize..b.tile_offsets[t + 1] as usize].to_vec()
+        };
+        let expected: Vec<u32> = list(&uncut)
+            .into_iter()
+            .filter(|&g| proj.depths[g as usize] <= deepest)
+            .collect();
+        dropped += list(&uncut).len() - expected.len();
+        assert_eq!(list(&culled), expected, "tile {t}");
+    }
+    assert!(
+        dropped > 0 && dropped < uncut.num_intersections(),
+        "{dropped} dropped"
+    );
+    let a = rasterize_backward_with::<L>(&occluded, &culled, Some(&w_img), Some(&w_t)).unwrap();
+    let b = rasterize_backward_with::<L>(&occluded, &uncut, Some(&w_img), Some(&w_t)).unwrap();
+    assert_eq!(a.v_means2d, b.v_means2d);
+    assert_eq!(a.v_conics, b.v_conics);
+    assert_eq!(a.v_colors, b.v_colors);
+    assert_eq!(a.v_opacities, b.v_opacities);
+    assert!(
+        a.v_opacities.iter().any(|&v| v != 0.0),
+        "the occluded render has gradients"
+    );
+}

@@ -1,5 +1,8 @@
 //! Tile binning: every visible Gaussian is listed in each 16×16 tile its bounding box
-//! touches, each tile's list in (depth, index) order — the order a stable sort of
+//! touches — except, with a mesh depth map, the tiles where it lies behind the mesh at
+//! every pixel (deeper than the tile's largest `depth_map + depth_eps`: every sample there
+//! would fail the occlusion test, so the lists, the images and the gradients are those of
+//! listing it) — each tile's list in (depth, index) order — the order a stable sort of
 //! (tile, depth) keys with index tie-breaks gives. Built by one global depth sort
 //! followed by a counting sort by tile, which also yields the inverse index (each
 //! Gaussian's intersections in row-major tile order) that the backward reduces over.
@@ -77,28 +80,43 @@ impl Binning {
                 limit: MAX_INTERSECTIONS as u128,
             });
         }
-        let total = total as usize;
+        // Behind the mesh in a whole tile: hidden there (see the module docs).
+        let deepest = inputs
+            .depth_map
+            .map(|depth| deepest_limits(inputs, depth, tiles_x, tiles_y));
+        let listed = |g: usize, tile: usize| deepest.as_ref().is_none_or(|d| inputs.depths[g] <= d[tile]);
+        let listed_tiles = |g: usize| {
+            let [x0, x1, y0, y1] = rects[g];
+            (y0..y1)
+                .flat_map(move |ty| (x0..x1).map(move |tx| ty * tiles_x + tx))
+                .filter(move |&tile| listed(g, tile))
+        };
+        let counts: Vec<u32> = (0..n)
+            .into_par_iter()
+            .with_min_len(1024)
+            .map(|g| listed_tiles(g).count() as u32)
+            .collect();
+        let total: usize = counts.iter().map(|&k| k as usize).sum();
 
         let mut gaussian_offsets = Vec::with_capacity(n + 1);
         gaussian_offsets.push(0u32);
-        for r in &rects {
-            gaussian_offsets.push(gaussian_offsets.last().unwrap() + count(r) as u32);
+        for &k in &counts {
+            gaussian_offsets.push(gaussian_offsets.last().unwrap() + k);
         }
 
         let order = depth_order(inputs, &rects);
         // Counts do not depend on the order: per-chunk integer counts, summed.
-        let tile_counts = rects
-            .par_chunks(4096)
+        const CHUNK: usize = 4096;
+        let tile_counts = (0..n.div_ceil(CHUNK))
+            .into_par_iter()
             .map(|chunk| {
-                let mut counts = vec![0u32; num_tiles];
-                for &[x0, x1, y0, y1] in chunk {
-                    for ty in y0..y1 {
-                        for c in &mut counts[ty * tiles_x + x0..ty * tiles_x + x1] {
-                            *c += 1;
-                        }
+                let mut tiles = vec![0u32; num_tiles];
+                for g in chunk * CHUNK..((chunk + 1) * CHUNK).min(n) {
+                    for tile in listed_tiles(g) {
+                        tiles[tile] += 1;
                     }
                 }
-                counts
+                tiles
             })
             .reduce(
                 || vec![0u32; num_tiles],
@@ -118,16 +136,12 @@ impl Binning {
         let mut tile_gaussians: Vec<u32> = zeroed("tile intersections", total)?;
         let mut isect_of_gaussian: Vec<u32> = zeroed("intersection order", total)?;
         for &g in &order {
-            let [x0, x1, y0, y1] = rects[g as usize];
-            let mut slot = gaussian_offsets[g as usize] as usize;
-            for ty in y0..y1 {
-                for tx in x0..x1 {
-                    let pos = cursor[ty * tiles_x + tx];
-                    cursor[ty * tiles_x + tx] += 1;
-                    tile_gaussians[pos as usize] = g;
-                    isect_of_gaussian[slot] = pos;
-                    slot += 1;
-                }
+            let first = gaussian_offsets[g as usize] as usize;
+            for (slot, tile) in (first..).zip(listed_tiles(g as usize)) {
+                let pos = cursor[tile];
+                cursor[tile] += 1;
+                tile_gaussians[pos as usize] = g;
+                isect_of_gaussian[slot] = pos;
             }
         }
         Ok(Self {
@@ -145,6 +159,26 @@ impl Binning {
     pub fn num_intersections(&self) -> usize {
         self.tile_gaussians.len()
     }
+}
+
+/// `(tiles_y, tiles_x)` each tile's largest `depth_map + depth_eps` (the limit the
+/// occlusion test compares a sample's depth with; a NaN limit, which no depth passes, is
+/// left out of the maximum).
+fn deepest_limits<T: Real>(inputs: &RasterInputs<T>, depth: &[T], tiles_x: usize, tiles_y: usize) -> Vec<T> {
+    let (w, h) = (inputs.width, inputs.height);
+    (0..tiles_y)
+        .into_par_iter()
+        .flat_map_iter(|ty| {
+            let mut row = vec![T::neg_infinity(); tiles_x];
+            for y in ty * TILE..((ty + 1) * TILE).min(h) {
+                for (x, &d) in depth[y * w..(y + 1) * w].iter().enumerate() {
+                    let deepest = &mut row[x / TILE];
+                    *deepest = deepest.max(d + inputs.depth_eps);
+                }
+            }
+            row
+        })
+        .collect()
 }
 
 /// Front-to-back order of the visible Gaussians; the index breaks depth ties. When every
