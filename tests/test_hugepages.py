@@ -111,16 +111,17 @@ def test_zeros_are_zeros_of_the_asked_shape_and_dtype():
 
 
 def test_other_dtypes_are_refused_with_a_typed_error():
-    with pytest.raises(DTypeError, match=r"float32, int32 or bfloat16.*float64"):
+    with pytest.raises(DTypeError, match=r"float32, int32, bfloat16 or float16.*float64"):
         hugepages.zeros((4,), torch.float64)
 
 
-def test_bfloat16_tables_are_zero_and_write_through():
-    table = hugepages.zeros((3, 5), torch.bfloat16)
-    assert table.dtype == torch.bfloat16 and table.shape == (3, 5) and not table.any()
-    copied = hugepages.copy(torch.tensor([[1.5, -2.0], [3.25, 1e-3]], dtype=torch.bfloat16))
-    assert copied.dtype == torch.bfloat16
-    assert copied.float().tolist() == [[1.5, -2.0], [3.25, torch.tensor(1e-3).bfloat16().item()]]
+@pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16])
+def test_16_bit_tables_are_zero_and_write_through(dtype):
+    table = hugepages.zeros((3, 5), dtype)
+    assert table.dtype == dtype and table.shape == (3, 5) and not table.any()
+    copied = hugepages.copy(torch.tensor([[1.5, -2.0], [3.25, 1e-3]], dtype=dtype))
+    assert copied.dtype == dtype
+    assert copied.float().tolist() == [[1.5, -2.0], [3.25, torch.tensor(1e-3).to(dtype).item()]]
 
 
 def test_copy_is_equal_and_independent():

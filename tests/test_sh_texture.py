@@ -275,6 +275,7 @@ def test_case34_float16_maps_stay_within_float16_rounding(degree, stability):
     dirs = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=1)
     half = urhead.ops.half_maps(tex)
     assert half is not None and half.dtype == torch.float16
+    assert torch.equal(half, tex.to(torch.float16))  # rounded to nearest, as torch casts
     ours = sh_texture(half, uv, dirs, degree, NORMAL).double()
     exact = _reference.sh_texture(tex.double(), uv.double(), dirs.double(), degree, NORMAL)
     # Bound: Σ_k |b_k| · Σ_taps w · r(|c|), r(x) = max(x·2⁻¹¹, 2⁻²⁵), plus float32

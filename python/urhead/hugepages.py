@@ -25,21 +25,28 @@ import torch
 from urhead.errors import DTypeError
 from urhead.ops._bridge import native
 
-# numpy has no bfloat16: its tables are allocated as their uint16 bits and viewed back.
-_DTYPE_NAMES = {torch.float32: "float32", torch.int32: "int32", torch.bfloat16: "uint16"}
+# numpy has no bfloat16: its tables (and float16 ones) are allocated as uint16 bits and
+# viewed back.
+_DTYPE_NAMES = {
+    torch.float32: "float32",
+    torch.int32: "int32",
+    torch.bfloat16: "uint16",
+    torch.float16: "uint16",
+}
 
 
 def zeros(shape: tuple[int, ...] | torch.Size, dtype: torch.dtype = torch.float32) -> torch.Tensor:
-    """A contiguous tensor of zeros of ``shape`` (float32, int32 or bfloat16) on huge pages."""
+    """A contiguous tensor of zeros of ``shape`` (float32, int32, bfloat16 or float16) on
+    huge pages."""
     if dtype not in _DTYPE_NAMES:
-        raise DTypeError(f"huge-page tensors are float32, int32 or bfloat16, got {dtype}")
+        raise DTypeError(f"huge-page tensors are float32, int32, bfloat16 or float16, got {dtype}")
     flat = torch.from_numpy(native("huge_page_zeros")(math.prod(shape), _DTYPE_NAMES[dtype]))
     return flat.view(dtype).reshape(shape)
 
 
 def copy(tensor: torch.Tensor) -> torch.Tensor:
-    """A contiguous copy of ``tensor`` (float32, int32 or bfloat16, CPU) on huge pages; it never
-    shares memory or autograd history with ``tensor``."""
+    """A contiguous copy of ``tensor`` (float32, int32, bfloat16 or float16, CPU) on huge
+    pages; it never shares memory or autograd history with ``tensor``."""
     out = zeros(tensor.shape, tensor.dtype)
     out.copy_(tensor.detach())
     return out

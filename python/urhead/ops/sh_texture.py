@@ -168,4 +168,10 @@ def half_maps(tex: torch.Tensor) -> torch.Tensor | None:
         low, high = torch.aminmax(detached)  # no |tex| temporary the size of the maps
         if not bool((low >= -HALF_MAX) & (high <= HALF_MAX)):  # False for NaN too
             return None
-    return detached.to(torch.float16).contiguous()
+    from urhead import hugepages  # here: hugepages imports the ops' bridge
+
+    # On huge pages, as the maps: the pixels' reads are random, and on 4 KiB pages most
+    # of them would miss the TLB.
+    half = hugepages.zeros(detached.shape, torch.float16)
+    half.copy_(detached)  # rounded to nearest, as .to(torch.float16)
+    return half
