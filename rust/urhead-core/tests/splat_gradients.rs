@@ -5,7 +5,7 @@
 use urhead_core::splat::lanes::{Emu, Lanes};
 use urhead_core::splat::{
     project_backward, project_forward, rasterize_backward_with, rasterize_forward_with, ProjectGradOutputs,
-    ProjectNeeds, RasterInputs, SplatReal, SyntheticSplat,
+    ProjectNeeds, Projected, RasterInputs, SplatReal, SyntheticSplat,
 };
 use urhead_core::testing::{on_threads, record_stability, Rng};
 use urhead_core::Real;
@@ -32,6 +32,30 @@ fn scene<T: SplatReal>(n: usize, seed: u64) -> SyntheticSplat<T> {
     s
 }
 
+/// The compositing inputs of `s` projected (`proj`), at `SIZE`², occlusion ε 0.01.
+fn raster_inputs<'a, T: SplatReal>(
+    s: &'a SyntheticSplat<T>,
+    proj: &'a Projected<T>,
+    background: Option<&'a [T]>,
+    depth_map: Option<&'a [T]>,
+) -> RasterInputs<'a, T> {
+    RasterInputs {
+        means2d: &proj.means2d,
+        conics: &proj.conics,
+        colors: proj.colors.as_ref().unwrap(),
+        opacities: &s.opacities,
+        depths: &proj.depths,
+        radii: &proj.radii,
+        num_gaussians: s.num_gaussians,
+        channels: 3,
+        width: SIZE as usize,
+        height: SIZE as usize,
+        background,
+        depth_map,
+        depth_eps: T::c(0.01),
+    }
+}
+
 fn render<L: Lanes>(
     s: &SyntheticSplat<L::Elem>,
     depth_map: Option<&[L::Elem]>,
@@ -43,24 +67,8 @@ where
 {
     let inputs = s.inputs(Some(3));
     let proj = project_forward(&s.camera, &inputs).unwrap();
-    let colors = proj.colors.as_ref().unwrap();
-    let n = s.num_gaussians;
     let bg = [0.2, 0.5, 0.9].map(L::Elem::c);
-    let raster = RasterInputs {
-        means2d: &proj.means2d,
-        conics: &proj.conics,
-        colors,
-        opacities: &s.opacities,
-        depths: &proj.depths,
-        radii: &proj.radii,
-        num_gaussians: n,
-        channels: 3,
-        width: SIZE as usize,
-        height: SIZE as usize,
-        background: Some(&bg),
-        depth_map,
-        depth_eps: L::Elem::c(0.01),
-    };
+    let raster = raster_inputs(s, &proj, Some(&bg), depth_map);
     let fwd = rasterize_forward_with::<L>(&raster).unwrap();
     let rg = rasterize_backward_with::<L>(&raster, &fwd.binning, Some(w_img), Some(w_t)).unwrap();
     let needs = ProjectNeeds {
@@ -238,28 +246,6 @@ fn case27_same_bits_for_any_thread_count() {
     }
 }
 
-fn raster_inputs<'a>(
-    s: &'a SyntheticSplat<f32>,
-    proj: &'a urhead_core::splat::Projected<f32>,
-    depth_map: Option<&'a [f32]>,
-) -> RasterInputs<'a, f32> {
-    RasterInputs {
-        means2d: &proj.means2d,
-        conics: &proj.conics,
-        colors: proj.colors.as_ref().unwrap(),
-        opacities: &s.opacities,
-        depths: &proj.depths,
-        radii: &proj.radii,
-        num_gaussians: s.num_gaussians,
-        channels: 3,
-        width: SIZE as usize,
-        height: SIZE as usize,
-        background: None,
-        depth_map,
-        depth_eps: 0.01,
-    }
-}
-
 /// With a mesh depth map, a Gaussian is not listed in the tiles where it lies behind the
 /// mesh at every pixel, and only there; the gradients are those of listing it everywhere
 /// (the backward replayed on the uncut lists), the same values.
@@ -276,7 +262,7 @@ fn gaussians_hidden_in_a_whole_tile_are_not_listed_there() {
         .collect();
     let inputs = s.inputs(Some(3));
     let proj = project_forward(&s.camera, &inputs).unwrap();
-    let raster = |depth_map| raster_inputs(&s, &proj, depth_map);
+    let raster = |depth_map| raster_inputs(&s, &proj, None, depth_map);
     type L = <f32 as SplatReal>::Fast;
     let occluded = raster(Some(&depth));
     let culled = rasterize_forward_with::<L>(&occluded).unwrap().binning;

@@ -91,42 +91,39 @@ impl Binning {
                 .flat_map(move |ty| (x0..x1).map(move |tx| ty * tiles_x + tx))
                 .filter(move |&tile| listed(g, tile))
         };
-        let counts: Vec<u32> = (0..n)
-            .into_par_iter()
-            .with_min_len(1024)
-            .map(|g| listed_tiles(g).count() as u32)
-            .collect();
-        let total: usize = counts.iter().map(|&k| k as usize).sum();
-
-        let mut gaussian_offsets = Vec::with_capacity(n + 1);
-        gaussian_offsets.push(0u32);
-        for &k in &counts {
-            gaussian_offsets.push(gaussian_offsets.last().unwrap() + k);
-        }
-
-        let order = depth_order(inputs, &rects);
-        // Counts do not depend on the order: per-chunk integer counts, summed.
+        // One pass over every Gaussian's listed tiles, in chunks: its own count, and each
+        // tile's (integer counts per chunk, summed: independent of the chunking).
         const CHUNK: usize = 4096;
-        let tile_counts = (0..n.div_ceil(CHUNK))
+        let chunks: Vec<(Vec<u32>, Vec<u32>)> = (0..n.div_ceil(CHUNK))
             .into_par_iter()
             .map(|chunk| {
                 let mut tiles = vec![0u32; num_tiles];
-                for g in chunk * CHUNK..((chunk + 1) * CHUNK).min(n) {
-                    for tile in listed_tiles(g) {
-                        tiles[tile] += 1;
-                    }
-                }
-                tiles
+                let per_gaussian = (chunk * CHUNK..((chunk + 1) * CHUNK).min(n))
+                    .map(|g| {
+                        let mut count = 0u32;
+                        for tile in listed_tiles(g) {
+                            tiles[tile] += 1;
+                            count += 1;
+                        }
+                        count
+                    })
+                    .collect();
+                (per_gaussian, tiles)
             })
-            .reduce(
-                || vec![0u32; num_tiles],
-                |mut a, b| {
-                    for (x, y) in a.iter_mut().zip(&b) {
-                        *x += y;
-                    }
-                    a
-                },
-            );
+            .collect();
+        let mut gaussian_offsets = Vec::with_capacity(n + 1);
+        gaussian_offsets.push(0u32);
+        let mut tile_counts = vec![0u32; num_tiles];
+        for (per_gaussian, tiles) in &chunks {
+            for &k in per_gaussian {
+                gaussian_offsets.push(gaussian_offsets.last().unwrap() + k);
+            }
+            for (sum, k) in tile_counts.iter_mut().zip(tiles) {
+                *sum += k;
+            }
+        }
+        let total = *gaussian_offsets.last().unwrap() as usize;
+        let order = depth_order(inputs, &rects);
         let mut tile_offsets = Vec::with_capacity(num_tiles + 1);
         tile_offsets.push(0u32);
         for c in &tile_counts {
