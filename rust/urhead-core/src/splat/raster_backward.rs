@@ -97,7 +97,8 @@ fn backward_segmented<L: Lanes>(
     let zero_bg = vec![L::Elem::zero(); c];
     let background = inputs.background.unwrap_or(&zero_bg);
 
-    // One task per row of tiles; its records are a contiguous range of intersections.
+    // One task per row of tiles (each its own, as in the forward: their costs are uneven);
+    // its records are a contiguous range of intersections.
     let mut row_records: Vec<&mut [L::Elem]> = Vec::with_capacity(binning.tiles_y);
     let mut rest = records.as_mut_slice();
     for ty in 0..binning.tiles_y {
@@ -107,35 +108,39 @@ fn backward_segmented<L: Lanes>(
         row_records.push(mine);
         rest = tail;
     }
-    row_records.into_par_iter().enumerate().for_each_init(
-        || Scratch::<L> {
-            recs: RowRecords::default(),
-            snapshots: Vec::new(),
-            v_color: vec![L::splat(L::Elem::zero()); c * SLOTS],
-            big_g: [L::splat(L::Elem::zero()); SLOTS],
-            acc_color: vec![L::splat(L::Elem::zero()); c],
-        },
-        |scratch, (tile_y, out)| {
-            let row_base = binning.tile_offsets[tile_y * binning.tiles_x] as usize;
-            for tile_x in 0..binning.tiles_x {
-                let tile = tile_y * binning.tiles_x + tile_x;
-                let (lo, hi) = (
-                    binning.tile_offsets[tile] as usize,
-                    binning.tile_offsets[tile + 1] as usize,
-                );
-                let tile_out = &mut out[(lo - row_base) * rec_len..(hi - row_base) * rec_len];
-                let tile = Tile {
-                    inputs,
-                    splats: &splats,
-                    list: &binning.tile_gaussians[lo..hi],
-                    x0: tile_x * TILE,
-                    y0: tile_y * TILE,
-                };
-                init_upstream(&tile, background, v_image, v_transmittance, scratch);
-                replay_and_accumulate(&tile, tile_x, tile_y, segment, scratch, tile_out);
-            }
-        },
-    );
+    row_records
+        .into_par_iter()
+        .with_max_len(1)
+        .enumerate()
+        .for_each_init(
+            || Scratch::<L> {
+                recs: RowRecords::default(),
+                snapshots: Vec::new(),
+                v_color: vec![L::splat(L::Elem::zero()); c * SLOTS],
+                big_g: [L::splat(L::Elem::zero()); SLOTS],
+                acc_color: vec![L::splat(L::Elem::zero()); c],
+            },
+            |scratch, (tile_y, out)| {
+                let row_base = binning.tile_offsets[tile_y * binning.tiles_x] as usize;
+                for tile_x in 0..binning.tiles_x {
+                    let tile = tile_y * binning.tiles_x + tile_x;
+                    let (lo, hi) = (
+                        binning.tile_offsets[tile] as usize,
+                        binning.tile_offsets[tile + 1] as usize,
+                    );
+                    let tile_out = &mut out[(lo - row_base) * rec_len..(hi - row_base) * rec_len];
+                    let tile = Tile {
+                        inputs,
+                        splats: &splats,
+                        list: &binning.tile_gaussians[lo..hi],
+                        x0: tile_x * TILE,
+                        y0: tile_y * TILE,
+                    };
+                    init_upstream(&tile, background, v_image, v_transmittance, scratch);
+                    replay_and_accumulate(&tile, tile_x, tile_y, segment, scratch, tile_out);
+                }
+            },
+        );
 
     // Per Gaussian, sum its intersection records in its fixed (row-major tile) order.
     let mut v_means2d = vec![L::Elem::zero(); n * 2];
