@@ -1,8 +1,25 @@
-"""Shared helpers for sections: number formatting, markdown tables, figure saving."""
+"""Shared helpers for sections: number formatting, markdown tables, figure saving, the
+trainer's thread setting."""
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from pathlib import Path
+
+import torch
+
+
+@contextmanager
+def one_torch_thread():
+    """torch on one thread inside the block, as the trainer and the renderer run it
+    (``urhead._threads.configure_threads``): urhead's kernels take the cores. The report's
+    own torch thread count, which the plain-torch references use, is restored after."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
 
 
 def ms(x: float | None) -> str:

@@ -20,10 +20,8 @@ import json
 from dataclasses import asdict, replace
 from pathlib import Path
 
-import torch
-
 import urhead
-from sections.common import table
+from sections.common import one_torch_thread, table
 from urhead.config import FIT_PRESETS, FitConfig
 from urhead.data import load_subject
 from urhead.data.synth.subject import SynthConfig, synthesize
@@ -149,17 +147,13 @@ def fit_once(subject_name: str, remedy: str) -> dict:
 
 
 def run(quick: bool) -> dict:
-    torch_threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # as the trainer runs (see urhead.train.command)
-    try:
+    with one_torch_thread():
         runs = RUNS[:2] if quick else RUNS
         results = []
         for subject_name, remedy in runs:
             print(f"   {subject_name} × {remedy}", flush=True)
             results.append(fit_once(subject_name, remedy))
         return {"resolution": RESOLUTION, "runs": results}
-    finally:
-        torch.set_num_threads(torch_threads)
 
 
 def _cell(r: dict | None, key: str) -> str:

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import torch
 
-from sections.common import ms, save, table
+from sections.common import ms, one_torch_thread, save, table
 from sections.scene import paper_scene
 from timing import median_wall_cpu_ms, wall_cpu_samples
 from urhead import hugepages
@@ -205,14 +205,8 @@ def measure(num_gaussians: int, repeats: int) -> dict:
 
 
 def run(quick: bool) -> dict:
-    threads = torch.get_num_threads()
-    # As the trainer runs (urhead._threads.configure_threads): urhead's kernels take the
-    # cores, torch one thread. The report's torch threads apply to the kernel references.
-    torch.set_num_threads(1)
-    try:
+    with one_torch_thread():
         return {"runs": [measure(24_000, 5 if quick else 20)]}
-    finally:
-        torch.set_num_threads(threads)
 
 
 def render(results: dict, figures: Path) -> str:

@@ -25,9 +25,8 @@ from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from sections.common import table
+from sections.common import one_torch_thread, table
 from sections.conditions import _code_fingerprint
 from urhead.config import FIT_PRESETS, FitConfig
 from urhead.data import load_subject
@@ -134,27 +133,30 @@ def _costs(names: list[str]) -> dict[str, dict]:
 
 
 def run(quick: bool) -> dict:
-    torch_threads = torch.get_num_threads()
     kernel_threads = os.environ.get("URHEAD_NUM_THREADS")
-    torch.set_num_threads(1)  # as the trainer runs (see urhead.train.command)
     try:
-        names = list(RUNS)[:2] if quick else list(RUNS)
-        fits = []
-        for name in names:
-            print(f"   {name}", flush=True)
-            fits.append(fit_once(name))
-        load = [round(x, 2) for x in os.getloadavg()]
-        # The timing on one kernel thread too: the process's CPU time is then the work
-        # alone, without a second thread's spinning at each kernel's end.
-        os.environ["URHEAD_NUM_THREADS"] = "1"
-        costs = _costs(names)
-        for fit in fits:
-            fit.update(costs[fit["name"]])
-        quick = FIT_PRESETS["quick"]
-        preset = {k: quick[k] for k in ("iterations", "uv_resolution")}
-        return {"subject": asdict(SUBJECT), "preset": preset, "fits": fits, "load_average": load}
+        with one_torch_thread():
+            names = list(RUNS)[:2] if quick else list(RUNS)
+            fits = []
+            for name in names:
+                print(f"   {name}", flush=True)
+                fits.append(fit_once(name))
+            load = [round(x, 2) for x in os.getloadavg()]
+            # The timing on one kernel thread too: the process's CPU time is then the work
+            # alone, without a second thread's spinning at each kernel's end.
+            os.environ["URHEAD_NUM_THREADS"] = "1"
+            costs = _costs(names)
+            for fit in fits:
+                fit.update(costs[fit["name"]])
+            quick = FIT_PRESETS["quick"]
+            preset = {k: quick[k] for k in ("iterations", "uv_resolution")}
+            return {
+                "subject": asdict(SUBJECT),
+                "preset": preset,
+                "fits": fits,
+                "load_average": load,
+            }
     finally:
-        torch.set_num_threads(torch_threads)
         if kernel_threads is None:
             os.environ.pop("URHEAD_NUM_THREADS", None)
         else:

@@ -14,9 +14,7 @@ import tempfile
 from dataclasses import replace
 from pathlib import Path
 
-import torch
-
-from sections.common import save, table
+from sections.common import one_torch_thread, save, table
 from urhead.config import FIT_PRESETS, FitConfig
 from urhead.data import load_subject
 from urhead.data.synth.subject import SynthConfig, synthesize
@@ -69,9 +67,7 @@ def _fit(subject, head, config: FitConfig) -> dict:
 
 
 def run(quick: bool) -> dict:
-    torch_threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # as the trainer runs (see urhead.train.command)
-    try:
+    with one_torch_thread():
         subject_dir = synthesize(ROOT / ".cache" / "quality_subject", SUBJECT, progress=False)
         subject = load_subject(subject_dir)
         head = procedural_head(0)
@@ -93,8 +89,6 @@ def run(quick: bool) -> dict:
             print(f"   {name}", flush=True)
             results[name] = {"group": group, **_fit(subject, head, replace(base, **overrides))}
         return {"iterations": iterations, "subject_frames": SUBJECT.frames, "runs": results}
-    finally:
-        torch.set_num_threads(torch_threads)
 
 
 def render(results: dict, figures: Path) -> str:

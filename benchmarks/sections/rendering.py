@@ -13,7 +13,7 @@ from pathlib import Path
 
 import torch
 
-from sections.common import ms, save, table
+from sections.common import ms, one_torch_thread, save, table
 from sections.scene import paper_scene
 from urhead.ops import composite
 
@@ -89,13 +89,9 @@ def thumbnail(image: torch.Tensor, side: int = 128) -> str:
 
 
 def run(quick: bool) -> dict:
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # urhead's kernels take the cores, as in urhead render
-    try:
+    with one_torch_thread():
         counts = (24_000,) if quick else (24_000, 100_000)
         return {"runs": [measure(n, 10 if quick else 30) for n in counts]}
-    finally:
-        torch.set_num_threads(threads)
 
 
 def render(results: dict, figures: Path) -> str:

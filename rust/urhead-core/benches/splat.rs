@@ -4,7 +4,7 @@
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
 use urhead_core::splat::{
     project_backward, project_forward, rasterize_backward, rasterize_forward, ProjectGradOutputs,
-    ProjectNeeds, RasterInputs, SyntheticSplat,
+    ProjectNeeds, SyntheticSplat,
 };
 use urhead_core::testing::Rng;
 
@@ -23,21 +23,7 @@ fn bench_splat(c: &mut Criterion) {
         let bg = [1.0f32; 3];
         let run = |backward: bool| {
             let proj = project_forward(&scene.camera, &inputs).unwrap();
-            let raster = RasterInputs {
-                means2d: &proj.means2d,
-                conics: &proj.conics,
-                colors: proj.colors.as_ref().unwrap(),
-                opacities: &scene.opacities,
-                depths: &proj.depths,
-                radii: &proj.radii,
-                num_gaussians: n,
-                channels: 3,
-                width: SIZE as usize,
-                height: SIZE as usize,
-                background: Some(&bg),
-                depth_map: None,
-                depth_eps: 0.01,
-            };
+            let raster = scene.raster_inputs(&proj, Some(&bg), None, 0.01);
             let fwd = rasterize_forward(&raster).unwrap();
             if backward {
                 let rg = rasterize_backward(&raster, &fwd.binning, Some(&v_image), Some(&v_t)).unwrap();

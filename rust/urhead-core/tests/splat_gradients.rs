@@ -5,7 +5,7 @@
 use urhead_core::splat::lanes::{Emu, Lanes};
 use urhead_core::splat::{
     project_backward, project_forward, rasterize_backward_with, rasterize_forward_with, ProjectGradOutputs,
-    ProjectNeeds, Projected, RasterInputs, SplatReal, SyntheticSplat,
+    ProjectNeeds, SplatReal, SyntheticSplat,
 };
 use urhead_core::testing::{on_threads, record_stability, Rng};
 use urhead_core::Real;
@@ -32,30 +32,6 @@ fn scene<T: SplatReal>(n: usize, seed: u64) -> SyntheticSplat<T> {
     s
 }
 
-/// The compositing inputs of `s` projected (`proj`), at `SIZE`², occlusion ε 0.01.
-fn raster_inputs<'a, T: SplatReal>(
-    s: &'a SyntheticSplat<T>,
-    proj: &'a Projected<T>,
-    background: Option<&'a [T]>,
-    depth_map: Option<&'a [T]>,
-) -> RasterInputs<'a, T> {
-    RasterInputs {
-        means2d: &proj.means2d,
-        conics: &proj.conics,
-        colors: proj.colors.as_ref().unwrap(),
-        opacities: &s.opacities,
-        depths: &proj.depths,
-        radii: &proj.radii,
-        num_gaussians: s.num_gaussians,
-        channels: 3,
-        width: SIZE as usize,
-        height: SIZE as usize,
-        background,
-        depth_map,
-        depth_eps: T::c(0.01),
-    }
-}
-
 fn render<L: Lanes>(
     s: &SyntheticSplat<L::Elem>,
     depth_map: Option<&[L::Elem]>,
@@ -68,7 +44,7 @@ where
     let inputs = s.inputs(Some(3));
     let proj = project_forward(&s.camera, &inputs).unwrap();
     let bg = [0.2, 0.5, 0.9].map(L::Elem::c);
-    let raster = raster_inputs(s, &proj, Some(&bg), depth_map);
+    let raster = s.raster_inputs(&proj, Some(&bg), depth_map, L::Elem::c(0.01));
     let fwd = rasterize_forward_with::<L>(&raster).unwrap();
     let rg = rasterize_backward_with::<L>(&raster, &fwd.binning, Some(w_img), Some(w_t)).unwrap();
     let needs = ProjectNeeds {
@@ -262,7 +238,7 @@ fn gaussians_hidden_in_a_whole_tile_are_not_listed_there() {
         .collect();
     let inputs = s.inputs(Some(3));
     let proj = project_forward(&s.camera, &inputs).unwrap();
-    let raster = |depth_map| raster_inputs(&s, &proj, None, depth_map);
+    let raster = |depth_map| s.raster_inputs(&proj, None, depth_map, 0.01);
     type L = <f32 as SplatReal>::Fast;
     let occluded = raster(Some(&depth));
     let culled = rasterize_forward_with::<L>(&occluded).unwrap().binning;

@@ -353,21 +353,7 @@ mod tests {
             *v *= 6.0;
         }
         let proj = project_forward(&s.camera, &s.inputs(Some(3))).unwrap();
-        let raster = RasterInputs {
-            means2d: &proj.means2d,
-            conics: &proj.conics,
-            colors: proj.colors.as_ref().unwrap(),
-            opacities: &s.opacities,
-            depths: &proj.depths,
-            radii: &proj.radii,
-            num_gaussians: 600,
-            channels: 3,
-            width: 48,
-            height: 48,
-            background: None,
-            depth_map: None,
-            depth_eps: 0.01,
-        };
+        let raster = s.raster_inputs(&proj, None, None, 0.01);
         let fwd = rasterize_forward_with::<Emu<f32>>(&raster).unwrap();
         let mut rng = Rng::new(3);
         let v_image = rng.vec::<f32>(48 * 48 * 3, -1.0, 1.0);

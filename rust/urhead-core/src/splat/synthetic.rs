@@ -1,7 +1,7 @@
 //! Deterministic synthetic splatting scenes shared by tests and benches: Gaussians of
 //! head-avatar size (a few mm) filling a head-sized ellipsoid in front of a camera.
 
-use super::{ProjectInputs, ShCoeffs};
+use super::{ProjectInputs, Projected, RasterInputs, ShCoeffs};
 use crate::sh::num_sh_coeffs;
 use crate::testing::Rng;
 use crate::{Camera, Real};
@@ -92,6 +92,32 @@ impl<T: Real> SyntheticSplat<T> {
                 degree,
             }),
             num_gaussians: self.num_gaussians,
+        }
+    }
+
+    /// Compositing inputs of the scene projected (`proj`, with colours) over the camera's
+    /// image, with occlusion tolerance `depth_eps`.
+    pub fn raster_inputs<'a>(
+        &'a self,
+        proj: &'a Projected<T>,
+        background: Option<&'a [T]>,
+        depth_map: Option<&'a [T]>,
+        depth_eps: T,
+    ) -> RasterInputs<'a, T> {
+        RasterInputs {
+            means2d: &proj.means2d,
+            conics: &proj.conics,
+            colors: proj.colors.as_deref().expect("projected with SH colours"),
+            opacities: &self.opacities,
+            depths: &proj.depths,
+            radii: &proj.radii,
+            num_gaussians: self.num_gaussians,
+            channels: 3,
+            width: self.camera.width as usize,
+            height: self.camera.height as usize,
+            background,
+            depth_map,
+            depth_eps,
         }
     }
 }
