@@ -196,19 +196,22 @@ def test_bad_inputs_raise_typed_errors_naming_the_argument(op):
         op(image, target.clone().requires_grad_(True))
 
 
+@pytest.mark.parametrize("channels, extra", [(3, 1), (1, 2), (2, 3)])
 @pytest.mark.parametrize("mask_kind", ["none", "soft"])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_l1_reads_the_first_channels_of_a_wider_image_in_place(mask_kind, dtype):
-    """An RGBA image against an RGB target (the mesh term): the value and the colour's
-    gradient are those of the colour alone, bit for bit; the alpha gets none."""
-    rgb, target = images(37, 141, 3, dtype=dtype, seed=5)
-    alpha = torch.rand(37, 141, 1, generator=torch.Generator().manual_seed(6), dtype=dtype)
-    rgba = torch.cat([rgb, alpha], -1)
+def test_l1_reads_the_first_channels_of_a_wider_image_in_place(channels, extra, mask_kind, dtype):
+    """A wider image against a target (the mesh term: RGBA against RGB, the kernel's
+    fixed-size path; other widths take its general one): the value and the compared
+    channels' gradient are those of those channels alone, bit for bit; the rest get none."""
+    rgb, target = images(37, 141, channels, dtype=dtype, seed=5)
+    more = torch.rand(37, 141, extra, generator=torch.Generator().manual_seed(6), dtype=dtype)
+    rgba = torch.cat([rgb, more], -1)
     mask = make_mask(mask_kind, 37, 141, dtype)
     wide_value, wide_grad = value_and_grad(masked_l1, rgba, target, mask)
     value, grad = value_and_grad(masked_l1, rgb, target, mask)
-    assert wide_grad.shape == (37, 141, 4) and wide_grad[..., 3].eq(0).all()
-    assert torch.equal(wide_value, value) and torch.equal(wide_grad[..., :3], grad)
+    assert wide_grad.shape == (37, 141, channels + extra)
+    assert wide_grad[..., channels:].eq(0).all()
+    assert torch.equal(wide_value, value) and torch.equal(wide_grad[..., :channels], grad)
     ref_value, ref_grad = value_and_grad(ref.masked_l1, rgba, target, mask)
     assert torch.allclose(wide_value, ref_value, rtol=1e-12 if dtype == torch.float64 else 1e-5)
     assert torch.allclose(wide_grad, ref_grad)

@@ -122,6 +122,57 @@ impl Sites for PixelList<'_> {
     }
 }
 
+/// The attribute width `C`: a constant for the widths the renderer interpolates (UVs 2,
+/// colours and normals 3, rotations 9), so a pixel's loops over its channels unroll, or
+/// any width. Like [`Sites`], each pass is compiled for each kind.
+trait Channels: Copy + Send + Sync {
+    fn get(self) -> usize;
+}
+
+#[derive(Clone, Copy)]
+struct Fixed<const C: usize>;
+
+impl<const C: usize> Channels for Fixed<C> {
+    #[inline(always)]
+    fn get(self) -> usize {
+        C
+    }
+}
+
+#[derive(Clone, Copy)]
+struct AnyWidth(usize);
+
+impl Channels for AnyWidth {
+    #[inline(always)]
+    fn get(self) -> usize {
+        self.0
+    }
+}
+
+/// `$body` with `$k` the [`Channels`] of width `$c`.
+macro_rules! by_width {
+    ($c:expr, $k:ident => $body:expr) => {
+        match $c {
+            2 => {
+                let $k = Fixed::<2>;
+                $body
+            }
+            3 => {
+                let $k = Fixed::<3>;
+                $body
+            }
+            9 => {
+                let $k = Fixed::<9>;
+                $body
+            }
+            c => {
+                let $k = AnyWidth(c);
+                $body
+            }
+        }
+    };
+}
+
 /// The pixels of the tile holding `pixel`.
 fn tile_of(pixel: usize, tile_len: usize) -> Range<usize> {
     let first = pixel - pixel % tile_len;
@@ -138,7 +189,6 @@ fn list(pixels: &[i64]) -> PixelList<'_> {
 /// Validated inputs shared by both passes.
 struct Inputs<'a, T> {
     attr: &'a [T],
-    channels: usize,
     faces: &'a [i32],
     tri_id: &'a [i32],
     bary: &'a [T],
@@ -179,7 +229,6 @@ impl<'a, T: Real> Inputs<'a, T> {
         check_finite("bary", bary)?;
         Ok(Self {
             attr,
-            channels,
             faces,
             tri_id,
             bary,
@@ -195,8 +244,8 @@ impl<'a, T: Real> Inputs<'a, T> {
 
     /// The attribute rows of triangle `tri`'s three vertices.
     #[inline(always)]
-    fn corners(&self, tri: i32) -> [&[T]; 3] {
-        let c = self.channels;
+    fn corners<K: Channels>(&self, tri: i32, k: K) -> [&[T]; 3] {
+        let c = k.get();
         let row = |k: usize| {
             let v = self.faces[3 * tri as usize + k] as usize;
             &self.attr[v * c..(v + 1) * c]
@@ -204,8 +253,8 @@ impl<'a, T: Real> Inputs<'a, T> {
         [row(0), row(1), row(2)]
     }
 
-    fn forward<S: Sites>(&self, sites: S) -> Result<Vec<T>> {
-        let c = self.channels;
+    fn forward<S: Sites, K: Channels>(&self, sites: S, width: K) -> Result<Vec<T>> {
+        let c = width.get();
         let mut out = zeroed("interpolated values", sites.len() * c)?;
         out.par_chunks_mut(self.tile_len() * c)
             .enumerate()
@@ -219,7 +268,7 @@ impl<'a, T: Real> Inputs<'a, T> {
                     }
                     let (b1, b2) = (self.bary[2 * idx], self.bary[2 * idx + 1]);
                     let b0 = T::one() - b1 - b2;
-                    let [a0, a1, a2] = self.corners(tri);
+                    let [a0, a1, a2] = self.corners(tri, width);
                     for k in 0..c {
                         px[k] = b0 * a0[k] + b1 * a1[k] + b2 * a2[k];
                     }
@@ -228,23 +277,26 @@ impl<'a, T: Real> Inputs<'a, T> {
         Ok(out)
     }
 
-    fn backward<S: Sites>(
+    fn backward<S: Sites, K: Channels>(
         &self,
         sites: S,
+        width: K,
         v_out: &[T],
         need_attr: bool,
         need_bary: bool,
     ) -> Result<InterpolateGrads<T>> {
         Ok(InterpolateGrads {
-            v_attr: need_attr.then(|| self.attr_grad(sites, v_out)),
-            v_bary: need_bary.then(|| self.bary_grad(sites, v_out)).transpose()?,
+            v_attr: need_attr.then(|| self.attr_grad(sites, width, v_out)),
+            v_bary: need_bary
+                .then(|| self.bary_grad(sites, width, v_out))
+                .transpose()?,
         })
     }
 
     /// `(V, C)`: per block, runs of consecutive entries on one triangle (a run also ends
     /// where the pixels move to another tile), merged in block order.
-    fn attr_grad<S: Sites>(&self, sites: S, v_out: &[T]) -> Vec<T> {
-        let (c, tile_len) = (self.channels, self.tile_len());
+    fn attr_grad<S: Sites, K: Channels>(&self, sites: S, width: K, v_out: &[T]) -> Vec<T> {
+        let (c, tile_len) = (width.get(), self.tile_len());
         let runs: Vec<TriangleRuns<T>> = sites
             .blocks(tile_len)
             .into_par_iter()
@@ -290,7 +342,7 @@ impl<'a, T: Real> Inputs<'a, T> {
 
     /// `(H, W, 2)`, each pixel summing its entries in entry order: per tile in parallel
     /// when the sites are increasing, else in one serial pass.
-    fn bary_grad<S: Sites>(&self, sites: S, v_out: &[T]) -> Result<Vec<T>> {
+    fn bary_grad<S: Sites, K: Channels>(&self, sites: S, width: K, v_out: &[T]) -> Result<Vec<T>> {
         let mut v_bary = zeroed("barycentric gradient", self.height * self.width * 2)?;
         let tile_len = self.tile_len();
         if sites.increasing() {
@@ -300,12 +352,12 @@ impl<'a, T: Real> Inputs<'a, T> {
                 .for_each(|(tile, vb)| {
                     let first = tile * tile_len;
                     for entry in sites.entries_in(first..first + vb.len() / 2) {
-                        self.add_bary_grad(sites, entry, v_out, first, vb);
+                        self.add_bary_grad(sites, width, entry, v_out, first, vb);
                     }
                 });
         } else {
             for entry in 0..sites.len() {
-                self.add_bary_grad(sites, entry, v_out, 0, &mut v_bary);
+                self.add_bary_grad(sites, width, entry, v_out, 0, &mut v_bary);
             }
         }
         Ok(v_bary)
@@ -313,9 +365,10 @@ impl<'a, T: Real> Inputs<'a, T> {
 
     /// Adds `entry`'s barycentric gradient to `v_bary`, the image from pixel `first_pixel`.
     #[inline(always)]
-    fn add_bary_grad<S: Sites>(
+    fn add_bary_grad<S: Sites, K: Channels>(
         &self,
         sites: S,
+        width: K,
         entry: usize,
         v_out: &[T],
         first_pixel: usize,
@@ -326,8 +379,8 @@ impl<'a, T: Real> Inputs<'a, T> {
         if tri < 0 {
             return;
         }
-        let c = self.channels;
-        let [a0, a1, a2] = self.corners(tri);
+        let c = width.get();
+        let [a0, a1, a2] = self.corners(tri, width);
         let g = &v_out[entry * c..(entry + 1) * c];
         let (mut d1, mut d2) = (T::zero(), T::zero());
         for k in 0..c {
@@ -355,10 +408,10 @@ pub fn interpolate_forward<T: Real>(
     pixels: Option<&[i64]>,
 ) -> Result<Vec<T>> {
     let inputs = Inputs::new(attr, channels, faces, tri_id, bary, height, width, pixels)?;
-    match pixels {
-        None => inputs.forward(WholeImage(height * width)),
-        Some(pixels) => inputs.forward(list(pixels)),
-    }
+    by_width!(channels, k => match pixels {
+        None => inputs.forward(WholeImage(height * width), k),
+        Some(pixels) => inputs.forward(list(pixels), k),
+    })
 }
 
 /// Adjoint of [`interpolate_forward`] given `v_out`, `(H, W, C)`, or `(P, C)` with
@@ -387,12 +440,12 @@ pub fn interpolate_backward<T: Real>(
     match pixels {
         None => {
             check_len("v_out", v_out, h * w * c, &format!("(H, W, C) = ({h}, {w}, {c})"))?;
-            inputs.backward(WholeImage(h * w), v_out, need_attr, need_bary)
+            by_width!(c, k => inputs.backward(WholeImage(h * w), k, v_out, need_attr, need_bary))
         }
         Some(pixels) => {
             let p = pixels.len();
             check_len("v_out", v_out, p * c, &format!("(P, C) = ({p}, {c})"))?;
-            inputs.backward(list(pixels), v_out, need_attr, need_bary)
+            by_width!(c, k => inputs.backward(list(pixels), k, v_out, need_attr, need_bary))
         }
     }
 }
@@ -479,6 +532,54 @@ mod tests {
     fn max_abs_diff(a: &[f64], b: &[f64]) -> f64 {
         assert_eq!(a.len(), b.len());
         a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max)
+    }
+
+    /// Every width, the fixed ones (2, 3, 9) and others, against the sums written out per
+    /// pixel: values, attribute and barycentric gradients.
+    #[test]
+    fn every_width_matches_the_plain_sums() {
+        let s = scene::<f64>(13);
+        let num_verts = s.attr.len() / C;
+        for width in [1, 2, 3, 4, 9, 11] {
+            let mut rng = Rng::new(14 + width as u64);
+            let attr: Vec<f64> = rng.vec(num_verts * width, -1.0, 1.0);
+            let v_out: Vec<f64> = rng.vec(H * W * width, -1.0, 1.0);
+            let values = interpolate_forward(&attr, width, &s.faces, &s.tri_id, &s.bary, H, W, None).unwrap();
+            let grads = interpolate_backward(
+                &attr, width, &s.faces, &s.tri_id, &s.bary, H, W, None, &v_out, true, true,
+            )
+            .unwrap();
+            let (mut v_attr, mut v_bary) = (vec![0.0; attr.len()], vec![0.0; H * W * 2]);
+            for p in 0..H * W {
+                let tri = s.tri_id[p];
+                let out = &values[p * width..(p + 1) * width];
+                if tri < 0 {
+                    assert!(out.iter().all(|&x| x == 0.0));
+                    continue;
+                }
+                let (b1, b2) = (s.bary[2 * p], s.bary[2 * p + 1]);
+                let b = [1.0 - b1 - b2, b1, b2];
+                let v: Vec<usize> = (0..3).map(|k| s.faces[3 * tri as usize + k] as usize).collect();
+                for ch in 0..width {
+                    let a = |k: usize| attr[v[k] * width + ch];
+                    assert!((out[ch] - (b[0] * a(0) + b[1] * a(1) + b[2] * a(2))).abs() < 1e-12);
+                    let g = v_out[p * width + ch];
+                    for k in 0..3 {
+                        v_attr[v[k] * width + ch] += b[k] * g;
+                    }
+                    v_bary[2 * p] += g * (a(1) - a(0));
+                    v_bary[2 * p + 1] += g * (a(2) - a(0));
+                }
+            }
+            assert!(
+                max_abs_diff(grads.v_attr.as_ref().unwrap(), &v_attr) < 1e-12,
+                "width {width}"
+            );
+            assert!(
+                max_abs_diff(grads.v_bary.as_ref().unwrap(), &v_bary) < 1e-12,
+                "width {width}"
+            );
+        }
     }
 
     #[test]

@@ -61,9 +61,7 @@ pub fn masked_l1_with_grad<T: Real>(inputs: &SsimInputs<'_, T>) -> Result<(T, Ve
                     slope_row(x, y, &mask, scale, g);
                 } else {
                     slope_row(x, y, &mask, scale, &mut slopes);
-                    for (dst, src) in g.chunks_exact_mut(s).zip(slopes.chunks_exact(c)) {
-                        copy_short(dst, src, c);
-                    }
+                    copy_pixels(g, s, &slopes, c, c);
                 }
             }
             total
@@ -111,10 +109,25 @@ fn compared<'a, T: Real>(inputs: &SsimInputs<'_, T>, x: &'a [T], gathered: &'a m
     if s == c {
         return x;
     }
-    for (dst, pixel) in gathered.chunks_exact_mut(c).zip(x.chunks_exact(s)) {
-        copy_short(dst, pixel, c);
-    }
+    copy_pixels(gathered, c, x, s, c);
     gathered
+}
+
+/// The first `n` channels of each pixel of `src` (pixels `src_stride` apart) into the
+/// pixels of `dst` (`dst_stride` apart). Three channels, the colour of an RGB or RGBA
+/// image, are copied as a fixed-size move: a copy of a length known only at run time is
+/// a `memmove` call per pixel, which took ~15 % of the masked L1 on an RGBA image.
+fn copy_pixels<T: Copy>(dst: &mut [T], dst_stride: usize, src: &[T], src_stride: usize, n: usize) {
+    let pixels = dst.chunks_exact_mut(dst_stride).zip(src.chunks_exact(src_stride));
+    if n == 3 {
+        for (d, s) in pixels {
+            d[..3].copy_from_slice(&s[..3]);
+        }
+    } else {
+        for (d, s) in pixels {
+            copy_short(d, s, n);
+        }
+    }
 }
 
 /// `Σ_t mask[t]·|x[t] − y[t]|` of one row, accumulated in T then returned as f64.
