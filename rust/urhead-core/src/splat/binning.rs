@@ -85,12 +85,6 @@ impl Binning {
             .depth_map
             .map(|depth| deepest_limits(inputs, depth, tiles_x, tiles_y));
         let listed = |g: usize, tile: usize| deepest.as_ref().is_none_or(|d| inputs.depths[g] <= d[tile]);
-        let listed_tiles = |g: usize| {
-            let [x0, x1, y0, y1] = rects[g];
-            (y0..y1)
-                .flat_map(move |ty| (x0..x1).map(move |tx| ty * tiles_x + tx))
-                .filter(move |&tile| listed(g, tile))
-        };
         // One pass over every Gaussian's listed tiles, in chunks: its own count, and each
         // tile's (integer counts per chunk, summed: independent of the chunking).
         const CHUNK: usize = 4096;
@@ -101,10 +95,12 @@ impl Binning {
                 let per_gaussian = (chunk * CHUNK..((chunk + 1) * CHUNK).min(n))
                     .map(|g| {
                         let mut count = 0u32;
-                        for tile in listed_tiles(g) {
-                            tiles[tile] += 1;
-                            count += 1;
-                        }
+                        for_each_tile(rects[g], tiles_x, |tile| {
+                            if listed(g, tile) {
+                                tiles[tile] += 1;
+                                count += 1;
+                            }
+                        });
                         count
                     })
                     .collect();
@@ -133,13 +129,16 @@ impl Binning {
         let mut tile_gaussians: Vec<u32> = zeroed("tile intersections", total)?;
         let mut isect_of_gaussian: Vec<u32> = zeroed("intersection order", total)?;
         for &g in &order {
-            let first = gaussian_offsets[g as usize] as usize;
-            for (slot, tile) in (first..).zip(listed_tiles(g as usize)) {
-                let pos = cursor[tile];
-                cursor[tile] += 1;
-                tile_gaussians[pos as usize] = g;
-                isect_of_gaussian[slot] = pos;
-            }
+            let mut slot = gaussian_offsets[g as usize] as usize;
+            for_each_tile(rects[g as usize], tiles_x, |tile| {
+                if listed(g as usize, tile) {
+                    let pos = cursor[tile];
+                    cursor[tile] += 1;
+                    tile_gaussians[pos as usize] = g;
+                    isect_of_gaussian[slot] = pos;
+                    slot += 1;
+                }
+            });
         }
         Ok(Self {
             tiles_x,
@@ -155,6 +154,19 @@ impl Binning {
 
     pub fn num_intersections(&self) -> usize {
         self.tile_gaussians.len()
+    }
+}
+
+/// Calls `visit` with each tile of `rect` (`[x0, x1, y0, y1]`, in tiles), row by row.
+/// Plain nested loops: as a `flat_map` iterator the walk's fold was left out of line in
+/// some builds, which cost a 512² splatting forward ~1 ms (measured on the step's inputs).
+#[inline(always)]
+fn for_each_tile(rect: [usize; 4], tiles_x: usize, mut visit: impl FnMut(usize)) {
+    let [x0, x1, y0, y1] = rect;
+    for ty in y0..y1 {
+        for tx in x0..x1 {
+            visit(ty * tiles_x + tx);
+        }
     }
 }
 
