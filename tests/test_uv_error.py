@@ -219,3 +219,43 @@ def test_the_sampler_observes_what_the_previous_code_charged(rendered):
         )
     assert torch.equal(sampler.accumulator.error, error)
     assert torch.equal(sampler.accumulator.count, count)
+
+
+def test_an_observation_begun_before_its_step_is_judged_adds_only_when_applied(rendered):
+    """The trainer begins the sampler's observation before the backward pass (the charge
+    runs on a worker thread): applied, the grids are bit for bit those of observing at
+    once, including on top of earlier frames; dropped (a rejected step), they are left
+    alone; a kernel error surfaces when it is applied."""
+    from dataclasses import replace
+
+    from urhead.config import FitConfig
+    from urhead.model import GaussianSampler
+
+    config = replace(FitConfig(), uv_resolution=64, error_grid=32, initial_gaussians=0)
+    at_once, begun = (GaussianSampler(config, procedural_head(0), 0) for _ in range(2))
+    render = SimpleNamespace(
+        image=rendered.image,
+        mesh=SimpleNamespace(pixels=rendered.pixels, uv=rendered.uv),
+        gaussians=None,
+    )
+    frame = SimpleNamespace(image=rendered.target, mask=rendered.mask)
+    for applied in (True, False, True, True):
+        observation = begun.start_observing(render, frame)
+        if applied:
+            at_once.observe(render, frame)
+            begun.apply(observation)
+        else:
+            observation.charge.result()  # done, and never added
+        assert torch.equal(begun.accumulator.error, at_once.accumulator.error)
+        assert torch.equal(begun.accumulator.count, at_once.accumulator.count)
+    assert at_once.accumulator.count.sum() > 0
+    repeated = torch.cat([rendered.pixels, rendered.pixels[:1]])
+    bad = SimpleNamespace(
+        image=rendered.image,
+        mesh=SimpleNamespace(pixels=repeated, uv=torch.cat([rendered.uv, rendered.uv[:1]])),
+        gaussians=None,
+    )
+    observation = begun.start_observing(bad, frame)
+    with pytest.raises(InvalidArgumentError, match="more than once"):
+        begun.apply(observation)
+    assert torch.equal(begun.accumulator.error, at_once.accumulator.error)

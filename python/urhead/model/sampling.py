@@ -5,6 +5,8 @@ sampling policy behind one seam (:class:`GaussianSampler`)."""
 from __future__ import annotations
 
 import logging
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -74,6 +76,23 @@ class ErrorAccumulator:
         """
         accumulate_uv_error(image, target, mask, pixels, uv, self.error, self.count)
 
+    def start(self, image, target, mask, pixels, uv, worker: ThreadPoolExecutor) -> Future:
+        """:meth:`add`'s charge begun on ``worker`` (the kernel runs without the GIL), into
+        fresh grids that :meth:`commit` adds: ``0 + s`` is ``s``, so the grids come out bit
+        for bit those of :meth:`add`. The tensors must not change until it is done."""
+        return worker.submit(self._charge, image, target, mask, pixels, uv)
+
+    def _charge(self, image, target, mask, pixels, uv) -> tuple[torch.Tensor, torch.Tensor]:
+        error, count = torch.zeros_like(self.error), torch.zeros_like(self.count)
+        accumulate_uv_error(image, target, mask, pixels, uv, error, count)
+        return error, count
+
+    def commit(self, charge: Future) -> None:
+        """Adds a charge begun by :meth:`start` (its error, if any, is raised here)."""
+        error, count = charge.result()
+        self.error += error
+        self.count += count
+
     def density(self) -> torch.Tensor:
         """(G·G,) normalised error per cell, 0 where never seen."""
         return torch.where(self.count > 0, self.error / self.count.clamp_min(1), 0.0)
@@ -124,6 +143,16 @@ def set_gaussians(avatar: Avatar, surface: UvSurface, uv: np.ndarray) -> np.ndar
     return order
 
 
+@dataclass(frozen=True)
+class Observation:
+    """A rendered frame's contribution to the sampler, begun before its step was judged:
+    the UV error charge under way (None when the sampling is not adaptive) and the
+    Gaussians' (N, 2) screen radii (None without Gaussians)."""
+
+    charge: Future | None
+    radii: torch.Tensor | None
+
+
 class GaussianSampler:
     """The fit's Gaussian sampling policy, behind one seam (the pattern of gsplat's
     strategies): the trainer calls :meth:`observe` after each applied step and
@@ -142,17 +171,39 @@ class GaussianSampler:
         self.surface = UvSurface(head.uv_coords, head.uv_faces)
         self.accumulator = ErrorAccumulator(min(config.error_grid, config.uv_resolution))
         self.max_radius = torch.zeros(num_gaussians, dtype=torch.int32)
+        self._worker: ThreadPoolExecutor | None = None  # started by the first observation
 
     def observe(self, render, frame) -> None:
         """After a step that was applied: charges the frame's error to UV (adaptive) and
         records each Gaussian's screen radius."""
+        self.apply(self.start_observing(render, frame))
+
+    def start_observing(self, render, frame) -> Observation:
+        """Begins :meth:`observe`'s work on ``render`` before the step is judged: the UV
+        error charge (serial, a few ms at 512²) runs on a worker thread while the caller
+        runs the backward pass on the other core. :meth:`apply` it once the step is
+        applied; drop it otherwise."""
+        charge = None
         if self.adaptive:
-            self.accumulator.add(
-                render.image, frame.image, frame.mask, render.mesh.pixels, render.mesh.uv
+            if self._worker is None:
+                self._worker = ThreadPoolExecutor(1, thread_name_prefix="urhead-uv-error")
+            charge = self.accumulator.start(
+                render.image.detach(),
+                frame.image,
+                frame.mask,
+                render.mesh.pixels,
+                render.mesh.uv.detach(),
+                self._worker,
             )
-        if render.gaussians is not None:
-            radius = render.gaussians.radii.amax(-1)
-            self.max_radius = torch.maximum(self.max_radius, radius)
+        radii = render.gaussians.radii if render.gaussians is not None else None
+        return Observation(charge, radii)
+
+    def apply(self, observation: Observation) -> None:
+        """Adds an observation begun by :meth:`start_observing`."""
+        if observation.charge is not None:
+            self.accumulator.commit(observation.charge)
+        if observation.radii is not None:
+            self.max_radius = torch.maximum(self.max_radius, observation.radii.amax(-1))
 
     def prune_oversized(self, avatar, render, frame) -> int:
         """After a step the guard rejected: prunes at once the Gaussians that ``render``

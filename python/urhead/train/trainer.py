@@ -321,9 +321,12 @@ class Trainer:
             sh_degree=active_sh_degree(c, it),
         )
         loss = self.objective(render, frame)
+        # The sampler's serial UV error charge overlaps the backward pass (a worker
+        # thread); it counts only if the guard applies the step.
+        observation = state.sampler.start_observing(render, frame)
         loss.backward()
         if state.guard.step(it, row, loss.detach(), gather.samples()):  # applies or undoes
-            state.sampler.observe(render, frame)
+            state.sampler.apply(observation)
         else:
             state.sampler.prune_oversized(avatar, render, frame)
         avatar.maps.grad = None
