@@ -155,9 +155,11 @@ class Observation:
 
 class GaussianSampler:
     """The fit's Gaussian sampling policy, behind one seam (the pattern of gsplat's
-    strategies): the trainer calls :meth:`observe` after each applied step and
-    :meth:`step_end` after each iteration; the sampler owns its state (the UV error, each
-    Gaussian's largest screen radius) and its checkpoint entries (:meth:`state`).
+    strategies): the trainer begins each rendered frame's observation before its step is
+    judged (:meth:`start_observing`), applies it when the step is applied (:meth:`apply`;
+    :meth:`observe` does both at once) and calls :meth:`step_end` after each iteration;
+    the sampler owns its state (the UV error, each Gaussian's largest screen radius) and
+    its checkpoint entries (:meth:`state`).
 
     Every ``sample_every`` iterations it prunes Gaussians that are faint
     (opacity < ``prune_opacity``) or grew too large on screen, then draws new ones in
