@@ -244,8 +244,8 @@ impl<'a, T: Real> Inputs<'a, T> {
 
     /// The attribute rows of triangle `tri`'s three vertices.
     #[inline(always)]
-    fn corners<K: Channels>(&self, tri: i32, k: K) -> [&[T]; 3] {
-        let c = k.get();
+    fn corners<K: Channels>(&self, tri: i32, width: K) -> [&[T]; 3] {
+        let c = width.get();
         let row = |k: usize| {
             let v = self.faces[3 * tri as usize + k] as usize;
             &self.attr[v * c..(v + 1) * c]
