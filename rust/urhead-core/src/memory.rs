@@ -213,7 +213,8 @@ pub fn copy_short<T: Copy>(dst: &mut [T], src: &[T], n: usize) {
 /// why; the gain itself is measured). Measured on the development machine
 /// (AMD EPYC, 2 cores), `T0` → `T1`: the paper's iteration 108–115 → 101–106 ms in 4
 /// process pairs (CPU −12 ms), its sparse Adam step ~−2.5 ms, the texture lookups −15 to
-/// −20 %; `T2` is `T1` on this CPU, `NTA` no gain.
+/// −20 %; `T2` is `T1` on this CPU, `NTA` no gain. On an Intel Ice Lake host the two
+/// hints measured the same (the texture lookups and the Adam step within noise).
 #[inline(always)]
 pub fn prefetch<T>(data: &[T]) {
     #[cfg(target_arch = "x86_64")]
