@@ -459,8 +459,10 @@ fn update_row_f32<M: Moment>(
     let (b1, b2) = (config.beta1 as f32, config.beta2 as f32);
     let (one_minus_b1, one_minus_b2) = ((1.0 - config.beta1) as f32, (1.0 - config.beta2) as f32);
     let (eps, bound) = (config.eps as f32, config.step_bound() as f32);
-    // |x| < ∞ is false for NaN and ±∞: the row's finiteness, in the update's own pass.
-    let mut finite = true;
+    // The row's finiteness, in the update's own pass: the largest magnitude's bits (an
+    // unsigned max, which vectorises as a plain reduction) reach those of ∞ exactly when
+    // some value is NaN or ±∞.
+    let mut largest = 0u32;
     let rows = p.iter_mut().zip(m).zip(v).zip(g).zip(lr).enumerate();
     for (ch, ((((p, m), v), &g), &lr)) in rows {
         let mi = b1 * m.load() + one_minus_b1 * g;
@@ -469,9 +471,18 @@ fn update_row_f32<M: Moment>(
         *m = M::round_nearest(mi);
         *v = M::round_stochastic(vi, channel_random(seed, ch));
         *p -= step.clamp(-bound, bound) * lr;
-        finite &= (mi.abs() < f32::INFINITY) & (vi < f32::INFINITY) & (p.abs() < f32::INFINITY);
+        largest = largest
+            .max(magnitude_bits(mi))
+            .max(magnitude_bits(vi))
+            .max(magnitude_bits(*p));
     }
-    finite
+    largest < f32::INFINITY.to_bits()
+}
+
+/// `|x|`'s bits: ordered as the magnitudes are, with NaNs above ∞.
+#[inline(always)]
+fn magnitude_bits(x: f32) -> u32 {
+    x.to_bits() & 0x7FFF_FFFF
 }
 
 /// Rows with huge gradients, in f64 so g² cannot overflow; the second moment saturates
@@ -838,6 +849,50 @@ mod tests {
         )
         .unwrap();
         assert_eq!(report.non_finite_rows, 1); // f32::MAX + f32::MAX overflows
+    }
+
+    /// Each way a finite gradient's update can come out NaN or infinite — a stored moment
+    /// or parameter already so, in any channel — is counted once per row, and rows of
+    /// huge but finite values are not.
+    #[test]
+    fn every_non_finite_update_is_counted_and_no_finite_one() {
+        let c = 3;
+        let stored = [
+            (1, "m", f32::INFINITY),
+            (2, "m", f32::NAN),
+            (0, "v", f32::INFINITY),
+            (2, "v", -f32::NAN),
+            (1, "p", f32::NEG_INFINITY),
+            (0, "p", f32::NAN),
+        ];
+        for (ch, table, value) in stored {
+            for finite_neighbour in [f32::MAX, -f32::MAX, 1e38] {
+                let (mut p, mut m, mut v, mut s) = state(2, c);
+                // Row 0 is finite but at the edge of the range; row 1 holds the special.
+                p[..c].fill(finite_neighbour);
+                m[..c].fill(finite_neighbour);
+                v[..c].fill(f32::MAX);
+                match table {
+                    "m" => m[c + ch] = value,
+                    "v" => v[c + ch] = value,
+                    _ => p[c + ch] = value,
+                }
+                let mut st = SparseAdamState {
+                    param: &mut p,
+                    exp_avg: &mut m,
+                    exp_avg_sq: &mut v,
+                    steps: &mut s,
+                    channels: c,
+                };
+                let grads = [0.5; 6];
+                let report = sparse_adam_step(&mut st, &[0, 1], &grads, &[1e-3; 3], &CONFIG, None).unwrap();
+                assert_eq!(
+                    (report.non_finite_rows, report.rejected_rows),
+                    (1, 0),
+                    "stored {table}[{ch}] = {value} beside {finite_neighbour}"
+                );
+            }
+        }
     }
 
     #[test]
