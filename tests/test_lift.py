@@ -18,7 +18,8 @@ from urhead.errors import (
 )
 from urhead.head import procedural_head
 from urhead.model import MapLayout
-from urhead.ops import _reference, lift_gaussians_geometry, texture
+from urhead.model.lift_rows import lift_rows
+from urhead.ops import _reference, lift_gaussians_geometry, sh_shade, texture
 
 F64 = torch.float64
 OUTPUTS = ("means", "normals", "quats", "frames", "view_dirs")
@@ -312,6 +313,15 @@ def head():
     return procedural_head(0)
 
 
+def _old_colour(layout, rows, dirs, frames):
+    """SH colour along the rest-frame directions, times the shading gain with shading maps."""
+    rgb = _reference.sh_shade(rows, dirs, layout.sh_degree)
+    if not layout.shading:
+        return rgb
+    features = (frames - torch.eye(3)).reshape(-1, 9)
+    return rgb * (1 + (rows[:, layout.shading_maps] * features).sum(-1))[:, None]
+
+
 def _old_lift(avatar, verts, rotations, cam):
     """The avatar's lift before the kernel: plain torch around the map lookup and SH."""
     layout = avatar.layout
@@ -329,7 +339,7 @@ def _old_lift(avatar, verts, rotations, cam):
         "quats": quats,
         "scales": samples.scale.exp(),
         "opacities": torch.sigmoid(samples.opacity),
-        "colors": avatar._sh_color(rows, dirs, frames, None),
+        "colors": _old_colour(layout, rows, dirs, frames),
         "frames": frames,
     }
 
@@ -384,3 +394,85 @@ def test_avatar_face_vertex_ids_follow_the_gaussians(head):
     with torch.no_grad():
         avatar.gaussian_face[0] = 0
     assert torch.equal(avatar.gaussian_face_verts()[0], avatar.tables().faces[0])
+
+
+def _composed_lift(rows, layout, verts, rotations, face_verts, bary, centre):
+    """The lift from map rows as separate ops (split, geometry kernel, exp, sigmoid, SH
+    colour, shading gain): what :func:`lift_rows` fuses into one node."""
+    samples = layout.split(rows)
+    lift = samples.displacement
+    if samples.offset is not None:
+        lift = lift + samples.offset
+    geometry = lift_gaussians_geometry(
+        verts, rotations, face_verts, bary, samples.normal, lift, centre
+    )
+    rgb = sh_shade(rows, geometry.view_dirs, layout.sh_degree)
+    if layout.shading:
+        features = (geometry.frames - torch.eye(3)).reshape(-1, 9)
+        rgb = rgb * (1 + (rows[:, layout.shading_maps] * features).sum(-1))[:, None]
+    return {
+        "means": geometry.means,
+        "quats": geometry.quats,
+        "scales": samples.scale.contiguous().exp(),
+        "opacities": torch.sigmoid(samples.opacity.contiguous()),
+        "colors": rgb,
+        "frames": geometry.frames,
+        "offset": samples.offset,
+    }
+
+
+@pytest.mark.parametrize("offsets", [False, True])
+@pytest.mark.parametrize("shading", [False, True])
+def test_lift_rows_is_the_composed_ops_bit_for_bit(offsets, shading):
+    """Values and gradients (rows, vertices, rotations) equal to the separate ops', some
+    outputs without a gradient; rows without gradient (a frozen avatar) give the same
+    values."""
+    g = torch.Generator().manual_seed(7)
+    layout = MapLayout(3, True, offsets=offsets, shading=shading)
+    n, v = 500, 40
+    rows = torch.randn(n, layout.channels, generator=g)
+    rows[:, layout.color] *= 0.3
+    rows[:, layout.displacement] *= 0.01
+    verts = torch.randn(v, 3, generator=g)
+    rotations = torch.linalg.matrix_exp(_skew(torch.randn(v, 3, generator=g) * 0.3))
+    face_verts = torch.randint(0, v, (n, 3), generator=g, dtype=torch.int32)
+    bary = torch.rand(n, 3, generator=g)
+    bary /= bary.sum(1, keepdim=True)
+    centre = torch.tensor([0.1, -0.2, 3.0])
+    keys = ["means", "quats", "scales", "opacities", "colors"] + (["offset"] if offsets else [])
+    weights = {
+        k: torch.randn(
+            n,
+            *((4,) if k == "quats" else (3,) if k in ("means", "scales", "colors") else ()),
+            generator=g,
+        )
+        for k in keys
+    }
+    results = []
+    for fn in (
+        lambda *a: lift_rows(a[0], layout, *a[1:], layout.sh_degree)._asdict(),
+        lambda *a: _composed_lift(a[0], layout, *a[1:]),
+    ):
+        leaves = [t.clone().requires_grad_(True) for t in (rows, verts, rotations)]
+        out = fn(*leaves, face_verts, bary, centre)
+        # One output takes no gradient (the scales, or the colours): handled either way.
+        skipped = "scales" if offsets else "colors"
+        sum((out[k] * weights[k]).sum() for k in keys if k != skipped).backward()
+        results.append((out, [t.grad for t in leaves]))
+    (new, new_grads), (old, old_grads) = results
+    for k in (*keys, "frames"):
+        assert torch.equal(new[k], old[k]), k
+    for name, a, b in zip(("rows", "verts", "rotations"), new_grads, old_grads, strict=True):
+        assert torch.equal(a, b), name
+    with torch.no_grad():
+        frozen = lift_rows(rows, layout, verts, rotations, face_verts, bary, centre, 3)
+    assert all(torch.equal(getattr(frozen, k), new[k]) for k in keys)
+    with pytest.raises(ValueError, match="rows must be"):
+        lift_rows(rows[:, 1:], layout, verts, rotations, face_verts, bary, centre, 3)
+
+
+def _skew(w):
+    zero = torch.zeros_like(w[:, 0])
+    return torch.stack(
+        [zero, -w[:, 2], w[:, 1], w[:, 2], zero, -w[:, 0], -w[:, 1], w[:, 0], zero], 1
+    ).reshape(-1, 3, 3)

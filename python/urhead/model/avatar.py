@@ -21,6 +21,7 @@ import torch
 
 from urhead.camera import Camera
 from urhead.head.model import HeadModel, LbsTables
+from urhead.model.lift_rows import lift_rows
 from urhead.model.map_layout import SHADING_FEATURES, MapLayout
 from urhead.ops import (
     antialias,
@@ -30,12 +31,10 @@ from urhead.ops import (
     half_maps,
     interpolate,
     lbs,
-    lift_gaussians_geometry,
     rasterize,
     rasterize_gaussians,
     rotate_normalize,
     scatter_pixels,
-    sh_shade,
     sh_texture,
     texture,
 )
@@ -394,33 +393,30 @@ class Avatar:
     def lift_gaussians(self, verts, rotations, camera, gather=None, sh_degree=None) -> GaussianLift:
         """Each Gaussian's attributes from its UV point: position P + D·n on the posed
         surface (P + (D + E)·n with the offset map E), rotation from the posed normal,
-        scale, opacity and colour from the maps. The geometry is one kernel
-        (:func:`~urhead.ops.lift_gaussians_geometry`)."""
+        scale, opacity and colour from the maps — one autograd node from the map rows
+        (:func:`~urhead.model.lift_rows.lift_rows`; the geometry is
+        :func:`~urhead.ops.lift_gaussians_geometry`'s kernel)."""
         layout = self.layout
         rows = self.lookup_fixed(self.gaussian_uv, gather)
-        samples = layout.split(rows)
-        lift = samples.displacement
-        if samples.offset is not None:
-            lift = lift + samples.offset
-        geometry = lift_gaussians_geometry(
+        lifted = lift_rows(
+            rows,
+            layout,
             verts,
             rotations,
             self.gaussian_face_verts(),
             self.gaussian_bary,
-            samples.normal,
-            lift,
             camera.center,
+            self._sh_degree(sh_degree),
         )
         return GaussianLift(
-            means=geometry.means,
-            quats=geometry.quats,
-            # Contiguous first: on the (N, channels)-strided columns exp is ~8× slower.
-            scales=samples.scale.contiguous().exp(),
-            opacities=torch.sigmoid(samples.opacity.contiguous()),
-            colors=self._sh_color(rows, geometry.view_dirs, geometry.frames, sh_degree),
-            sh=samples.color.reshape(-1, layout.sh_coeffs, 3),
-            frames=geometry.frames,
-            offset=samples.offset,
+            means=lifted.means,
+            quats=lifted.quats,
+            scales=lifted.scales,
+            opacities=lifted.opacities,
+            colors=lifted.colors,
+            sh=rows[:, layout.color].reshape(-1, layout.sh_coeffs, 3),
+            frames=lifted.frames,
+            offset=lifted.offset,
         )
 
     def gaussian_face_verts(self) -> torch.Tensor:
@@ -447,19 +443,6 @@ class Avatar:
             depth_eps=self.depth_eps,
         )
         return GaussianRender(out.image, out.transmittance, out.radii, lift)
-
-    def _sh_color(self, rows, local, rotation, sh_degree: int | None = None):
-        """(P, 3) colours from map-sample rows (P, channels) seen along the unit view
-        directions ``local`` (P, 3) taken into the surface's rest frame
-        (``normalise(Rᵀ·ray)``: the world ray with ``rotation`` (P, 3, 3), the skinning
-        rotation, undone): view-dependent colour then follows the surface as the head
-        moves, and with a fixed camera it can absorb shading that changes with the head's
-        rotation. With shading maps A the colour is scaled by 1 + Σ A_ij (R − I)_ij: light
-        fixed in the room, to first order in the rotation."""
-        rgb = sh_shade(rows, local, self._sh_degree(sh_degree))
-        if not self.layout.shading:
-            return rgb
-        return _shading_gain(rgb, rows[:, self.layout.shading_maps], rotation)
 
     def _sh_degree(self, sh_degree: int | None) -> int:
         """The SH degree used: the layout's, or ``sh_degree`` while it is lower."""

@@ -37,57 +37,64 @@ class LiftOutput(NamedTuple):
     ``normalise(framesᵀ·normalise(means − centre))``; no gradient (SH colour's constant)."""
 
 
+def lift_forward(verts, rotations, normals, lift, face_verts, bary, centre):
+    """The native forward on contiguous tensors (no autograd): ``(means, normals, quats,
+    frames, view_dirs)`` as :func:`lift_gaussians_geometry` returns them."""
+    dtype = verts.dtype
+    outputs = native("lift_gaussians_forward")(
+        to_numpy("verts", verts, dtype),
+        to_numpy("rotations", rotations, dtype),
+        to_numpy("face_verts", face_verts, torch.int32),
+        to_numpy("bary", bary, dtype),
+        to_numpy("normals", normals, dtype),
+        to_numpy("lift", lift, dtype),
+        to_numpy("centre", centre, dtype),
+        num_threads(),
+    )
+    return tuple(torch.from_numpy(x) for x in outputs)
+
+
+def lift_backward(saved, v_means, v_normals, v_quats, needs):
+    """The native adjoint: ``saved`` the forward's seven inputs, ``needs`` whether
+    ``(verts, rotations, normals, lift)`` want a gradient; returns their gradients (None
+    where not needed)."""
+    verts, rotations, normals, lift, face_verts, bary, centre = saved
+    dtype = verts.dtype
+    grads = native("lift_gaussians_backward")(
+        verts.detach().numpy(),
+        rotations.detach().numpy(),
+        face_verts.numpy(),
+        bary.numpy(),
+        normals.detach().numpy(),
+        lift.detach().numpy(),
+        centre.numpy(),
+        grad_to_numpy("v_means", v_means, dtype),
+        grad_to_numpy("v_normals", v_normals, dtype),
+        grad_to_numpy("v_quats", v_quats, dtype),
+        needs,
+        num_threads(),
+    )
+    return tuple(map(from_numpy, grads))
+
+
 class _LiftGaussians(torch.autograd.Function):
     @staticmethod
     def forward(ctx, verts, rotations, normals, lift, face_verts, bary, centre):
-        dtype = verts.dtype
-        args = (
-            to_numpy("verts", verts, dtype),
-            to_numpy("rotations", rotations, dtype),
-            to_numpy("face_verts", face_verts, torch.int32),
-            to_numpy("bary", bary, dtype),
-            to_numpy("normals", normals, dtype),
-            to_numpy("lift", lift, dtype),
-            to_numpy("centre", centre, dtype),
-        )
-        means, posed, quats, frames, view_dirs = native("lift_gaussians_forward")(
-            *args, num_threads()
+        means, posed, quats, frames, view_dirs = lift_forward(
+            verts, rotations, normals, lift, face_verts, bary, centre
         )
         ctx.set_materialize_grads(False)
         ctx.save_for_backward(verts, rotations, normals, lift, face_verts, bary, centre)
-        frames_t, dirs_t = torch.from_numpy(frames), torch.from_numpy(view_dirs)
-        ctx.mark_non_differentiable(frames_t, dirs_t)
-        return (
-            torch.from_numpy(means),
-            torch.from_numpy(posed),
-            torch.from_numpy(quats),
-            frames_t,
-            dirs_t,
-        )
+        ctx.mark_non_differentiable(frames, view_dirs)
+        return means, posed, quats, frames, view_dirs
 
     @staticmethod
     def backward(ctx, v_means, v_normals, v_quats, _v_frames, _v_dirs):
         needs = tuple(ctx.needs_input_grad[:4])
         if not any(needs) or (v_means is None and v_normals is None and v_quats is None):
             return (None,) * 7
-        verts, rotations, normals, lift, face_verts, bary, centre = ctx.saved_tensors
-        dtype = verts.dtype
-        grads = native("lift_gaussians_backward")(
-            verts.detach().numpy(),
-            rotations.detach().numpy(),
-            face_verts.numpy(),
-            bary.numpy(),
-            normals.detach().numpy(),
-            lift.detach().numpy(),
-            centre.numpy(),
-            grad_to_numpy("v_means", v_means, dtype),
-            grad_to_numpy("v_normals", v_normals, dtype),
-            grad_to_numpy("v_quats", v_quats, dtype),
-            needs,
-            num_threads(),
-        )
-        v_verts, v_rotations, v_normals_rest, v_lift = map(from_numpy, grads)
-        return v_verts, v_rotations, v_normals_rest, v_lift, None, None, None
+        grads = lift_backward(ctx.saved_tensors, v_means, v_normals, v_quats, needs)
+        return (*grads, None, None, None)
 
 
 def lift_gaussians_geometry(

@@ -10,32 +10,42 @@ from urhead.errors import DTypeError, InvalidArgumentError
 from urhead.ops._bridge import check_shape, float_dtype, grad_to_numpy, native, to_numpy
 
 
+def sh_shade_forward(coeffs, dirs, degree):
+    """The native forward on contiguous tensors (no autograd): (P, 3) colours."""
+    dtype = coeffs.dtype
+    rgb = native("sh_shade_forward")(
+        to_numpy("coeffs", coeffs, dtype), to_numpy("dirs", dirs, dtype), degree, num_threads()
+    )
+    return torch.from_numpy(rgb)
+
+
+def sh_shade_backward(coeffs, dirs, degree, v_rgb):
+    """The native adjoint: (P, S) gradient of the rows ``coeffs`` (zero past the colour)."""
+    dtype = coeffs.dtype
+    v_coeffs = native("sh_shade_backward")(
+        coeffs.detach().numpy(),
+        dirs.detach().numpy(),
+        degree,
+        grad_to_numpy("v_rgb", v_rgb, dtype),
+        num_threads(),
+    )
+    return torch.from_numpy(v_coeffs)
+
+
 class _ShShade(torch.autograd.Function):
     @staticmethod
     def forward(ctx, coeffs, dirs, degree):
-        dtype = coeffs.dtype
-        rgb = native("sh_shade_forward")(
-            to_numpy("coeffs", coeffs, dtype), to_numpy("dirs", dirs, dtype), degree, num_threads()
-        )
         ctx.set_materialize_grads(False)
         ctx.save_for_backward(coeffs, dirs)
         ctx.degree = degree
-        return torch.from_numpy(rgb)
+        return sh_shade_forward(coeffs, dirs, degree)
 
     @staticmethod
     def backward(ctx, v_rgb):
         if v_rgb is None or not ctx.needs_input_grad[0]:
             return None, None, None
         coeffs, dirs = ctx.saved_tensors
-        dtype = coeffs.dtype
-        v_coeffs = native("sh_shade_backward")(
-            coeffs.detach().numpy(),
-            dirs.detach().numpy(),
-            ctx.degree,
-            grad_to_numpy("v_rgb", v_rgb, dtype),
-            num_threads(),
-        )
-        return torch.from_numpy(v_coeffs), None, None
+        return sh_shade_backward(coeffs, dirs, ctx.degree, v_rgb), None, None
 
 
 def sh_shade(coeffs: torch.Tensor, dirs: torch.Tensor, degree: int) -> torch.Tensor:

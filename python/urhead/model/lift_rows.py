@@ -1,0 +1,168 @@
+"""The Gaussians lifted straight from their map rows: one autograd node from the packed
+``(N, channels)`` samples to positions, rotations, scales, opacities and colours.
+
+Why one node: composed from :meth:`MapLayout.split`, ``exp``, ``sigmoid``,
+:func:`~urhead.ops.lift_gaussians_geometry` and :func:`~urhead.ops.sh_shade`, the rows
+reach four consumers. Each map column is copied out of the 56-wide rows on its own (a
+strided pass over all of them each), the split's backward concatenates a zero-filled
+colour gradient with the other maps', and autograd then adds the whole ``(N, channels)``
+gradient of the SH colour to it. Here the columns after the colour are copied out once,
+the colour's kernel writes the rows' gradient, and the other maps' gradients are added into
+its columns in one strided pass. The same kernels run on the same values: the outputs are
+bit for bit the composed path's, and so are the gradients (up to the sign of a zero).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+
+from urhead.model.map_layout import SHADING_FEATURES, MapLayout
+from urhead.ops.lift import lift_backward, lift_forward
+from urhead.ops.shading import sh_shade_backward, sh_shade_forward
+
+
+class RowsLift(NamedTuple):
+    means: torch.Tensor
+    """(N, 3) world positions."""
+    quats: torch.Tensor
+    """(N, 4) rotations (w, x, y, z), local z along the posed normal."""
+    scales: torch.Tensor
+    """(N, 3) standard deviations ``exp(S)``."""
+    opacities: torch.Tensor
+    """(N,) ``sigmoid(O)``."""
+    colors: torch.Tensor
+    """(N, 3) SH colours along the rest-frame view directions (times the shading gain with
+    shading maps)."""
+    frames: torch.Tensor
+    """(N, 3, 3) blended skinning rotations; no gradient."""
+    offset: torch.Tensor | None
+    """(N,) the offset map E's samples (None without E)."""
+
+
+class _Columns(NamedTuple):
+    """Where each map sits among the columns after the colour (the rows' tail)."""
+
+    colour: int
+    """Channels of colour, the tail's start."""
+    offset: int | None
+    shading: slice | None
+
+    @staticmethod
+    def of(layout: MapLayout) -> _Columns:
+        start = layout.normal.start
+        shading = layout.shading_maps if layout.shading else None
+        return _Columns(
+            start,
+            layout.offset - start if layout.offsets else None,
+            None if shading is None else slice(shading.start - start, shading.stop - start),
+        )
+
+
+# The tail's fixed columns (MapLayout's order): normal N, displacement D, opacity O, scale S.
+_NORMAL, _DISPLACEMENT, _OPACITY, _SCALE = slice(0, 3), 3, 4, slice(5, 8)
+
+
+def _shading_features(frames: torch.Tensor) -> torch.Tensor:
+    """(N, 9) the entries of R − I, the shading maps' features."""
+    return (frames - torch.eye(3, dtype=frames.dtype)).reshape(-1, SHADING_FEATURES)
+
+
+class _LiftRows(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, rows, verts, rotations, face_verts, bary, centre, columns, degree):
+        tail = rows[:, columns.colour :].contiguous()
+        normals = tail[:, _NORMAL].contiguous()
+        lift = tail[:, _DISPLACEMENT]
+        offset = None if columns.offset is None else tail[:, columns.offset]
+        lift = (lift if offset is None else lift + offset).contiguous()
+        saved = (verts, rotations, normals, lift, face_verts, bary, centre)
+        means, _, quats, frames, view_dirs = lift_forward(*saved)
+        scales = tail[:, _SCALE].contiguous().exp()
+        opacities = torch.sigmoid(tail[:, _OPACITY].contiguous())
+        rgb = sh_shade_forward(rows, view_dirs, degree)
+        colors, gain = rgb, None
+        if columns.shading is not None:
+            features = _shading_features(frames)
+            gain = 1 + (tail[:, columns.shading] * features).sum(-1)
+            colors = rgb * gain[:, None]
+        ctx.set_materialize_grads(False)
+        ctx.save_for_backward(rows, *saved, view_dirs, frames, scales, opacities, rgb, gain)
+        ctx.columns, ctx.degree = columns, degree
+        ctx.mark_non_differentiable(frames)
+        outputs = (means, quats, scales, opacities, colors, frames)
+        return (*outputs, offset.clone()) if offset is not None else outputs
+
+    @staticmethod
+    def backward(ctx, v_means, v_quats, v_scales, v_opacities, v_colors, _v_frames, *v_offset):
+        rows, *saved, view_dirs, frames, scales, opacities, rgb, gain = ctx.saved_tensors
+        columns = ctx.columns
+        need_rows, need_verts, need_rotations = ctx.needs_input_grad[:3]
+        v_tail = rows.new_zeros(rows.shape[0], rows.shape[1] - columns.colour)
+        v_rows = None
+        if v_colors is not None:
+            v_rgb = v_colors
+            if gain is not None:
+                v_rgb = v_colors * gain[:, None]
+                v_tail[:, columns.shading] = (v_colors * rgb).sum(-1)[:, None] * (
+                    _shading_features(frames)
+                )
+            if need_rows:
+                v_rows = sh_shade_backward(rows, view_dirs, ctx.degree, v_rgb)
+        needs = (need_verts, need_rotations, need_rows, need_rows)
+        v_verts = v_rotations = None
+        if any(needs) and (v_means is not None or v_quats is not None):
+            v_verts, v_rotations, v_normals, v_lift = lift_backward(
+                saved, v_means, None, v_quats, needs
+            )
+            if need_rows:
+                v_tail[:, _NORMAL] = v_normals
+                v_tail[:, _DISPLACEMENT] = v_lift
+                if columns.offset is not None:
+                    v_tail[:, columns.offset] = v_lift
+        if need_rows:
+            if v_scales is not None:
+                v_tail[:, _SCALE] = v_scales * scales  # exp's backward, as torch's
+            if v_opacities is not None:
+                v_tail[:, _OPACITY] = v_opacities * (1 - opacities) * opacities  # sigmoid's
+            if v_offset and v_offset[0] is not None:
+                v_tail[:, columns.offset] += v_offset[0]
+            if v_rows is None:
+                v_rows = rows.new_zeros(rows.shape)
+            v_rows[:, columns.colour :] += v_tail
+        return v_rows, v_verts, v_rotations, None, None, None, None, None
+
+
+def lift_rows(
+    rows: torch.Tensor,
+    layout: MapLayout,
+    verts: torch.Tensor,
+    rotations: torch.Tensor,
+    face_verts: torch.Tensor,
+    bary: torch.Tensor,
+    centre: torch.Tensor,
+    degree: int,
+) -> RowsLift:
+    """The Gaussians of one frame from their map rows (``(N, layout.channels)``, float32 or
+    float64, contiguous), as :meth:`Avatar.lift_gaussians` defines them: the geometry of
+    :func:`~urhead.ops.lift_gaussians_geometry` from the normal N and the lift D (+ E),
+    ``exp(S)``, ``sigmoid(O)``, and the SH colour of degree ``degree`` along the rest-frame
+    view directions (scaled by ``1 + Σ A_ij (R − I)_ij`` with shading maps). ``face_verts``
+    int32, ``bary`` and ``centre`` are constants of the verts' dtype."""
+    if not layout.gaussians:
+        raise ValueError("a mesh-only layout has no Gaussians to lift")
+    if rows.ndim != 2 or rows.shape[1] != layout.channels:
+        raise ValueError(f"rows must be (N, {layout.channels}), got {tuple(rows.shape)}")
+    outputs = _LiftRows.apply(
+        rows.contiguous(),
+        verts.contiguous(),
+        rotations.contiguous(),
+        face_verts,
+        bary,
+        centre.to(verts.dtype).contiguous(),
+        _Columns.of(layout),
+        degree,
+    )
+    offset = outputs[6] if layout.offsets else None
+    return RowsLift(*outputs[:6], offset)
