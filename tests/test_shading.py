@@ -74,3 +74,26 @@ def test_same_bits_for_any_thread_count(monkeypatch):
         results.append((rgb, x.grad))
     for rgb, grad in results[1:]:
         assert torch.equal(rgb, results[0][0]) and torch.equal(grad, results[0][1])
+
+
+def test_backward_writes_the_rest_of_the_rows_gradient():
+    """``sh_shade_backward``'s ``rest``: the other channels' gradient at its channels, the
+    colour's unchanged; a misplaced or mis-sized one is refused."""
+    from urhead.ops.shading import sh_shade_backward
+
+    g = torch.Generator().manual_seed(3)
+    coeffs = torch.randn(200, 27 + 5, generator=g)
+    dirs = torch.nn.functional.normalize(torch.randn(200, 3, generator=g), dim=1)
+    v_rgb = torch.randn(200, 3, generator=g)
+    rest = torch.randn(200, 4, generator=g)
+    plain = sh_shade_backward(coeffs, dirs, 2, v_rgb)
+    full = sh_shade_backward(coeffs, dirs, 2, v_rgb, (rest, 28))
+    expected = plain.clone()
+    expected[:, 28:32] = rest
+    assert torch.equal(full, expected)
+    with pytest.raises(InvalidArgumentError, match="rest"):
+        sh_shade_backward(coeffs, dirs, 2, v_rgb, (rest, 26))  # inside the colour
+    with pytest.raises(InvalidArgumentError, match="rest"):
+        sh_shade_backward(coeffs, dirs, 2, v_rgb, (rest, 29))  # past the rows
+    with pytest.raises((ShapeError, InvalidArgumentError), match="rest"):
+        sh_shade_backward(coeffs, dirs, 2, v_rgb, (rest[1:], 28))

@@ -7,9 +7,9 @@ reach four consumers. Each map column is copied out of the 56-wide rows on its o
 strided pass over all of them each), the split's backward concatenates a zero-filled
 colour gradient with the other maps', and autograd then adds the whole ``(N, channels)``
 gradient of the SH colour to it. Here the columns after the colour are copied out once,
-the colour's kernel writes the rows' gradient, and the other maps' gradients are added into
-its columns in one strided pass. The same kernels run on the same values: the outputs are
-bit for bit the composed path's, and so are the gradients (up to the sign of a zero).
+and the colour's kernel writes the whole rows' gradient, the other maps' columns in the
+same pass. The same kernels run on the same values: the outputs are bit for bit the
+composed path's, and so are the gradients (up to the sign of a zero colour gradient).
 """
 
 from __future__ import annotations
@@ -99,38 +99,37 @@ class _LiftRows(torch.autograd.Function):
         rows, *saved, view_dirs, frames, scales, opacities, rgb, gain = ctx.saved_tensors
         columns = ctx.columns
         need_rows, need_verts, need_rotations = ctx.needs_input_grad[:3]
-        v_tail = rows.new_zeros(rows.shape[0], rows.shape[1] - columns.colour)
-        v_rows = None
-        if v_colors is not None:
-            v_rgb = v_colors
-            if gain is not None:
-                v_rgb = v_colors * gain[:, None]
-                v_tail[:, columns.shading] = (v_colors * rgb).sum(-1)[:, None] * (
-                    _shading_features(frames)
-                )
-            if need_rows:
-                v_rows = sh_shade_backward(rows, view_dirs, ctx.degree, v_rgb)
         needs = (need_verts, need_rotations, need_rows, need_rows)
-        v_verts = v_rotations = None
+        v_verts = v_rotations = v_normals = v_lift = None
         if any(needs) and (v_means is not None or v_quats is not None):
             v_verts, v_rotations, v_normals, v_lift = lift_backward(
                 saved, v_means, None, v_quats, needs
             )
-            if need_rows:
-                v_tail[:, _NORMAL] = v_normals
-                v_tail[:, _DISPLACEMENT] = v_lift
-                if columns.offset is not None:
-                    v_tail[:, columns.offset] = v_lift
-        if need_rows:
-            if v_scales is not None:
-                v_tail[:, _SCALE] = v_scales * scales  # exp's backward, as torch's
-            if v_opacities is not None:
-                v_tail[:, _OPACITY] = v_opacities * (1 - opacities) * opacities  # sigmoid's
-            if v_offset and v_offset[0] is not None:
-                v_tail[:, columns.offset] += v_offset[0]
-            if v_rows is None:
-                v_rows = rows.new_zeros(rows.shape)
+        if not need_rows:
+            return None, v_verts, v_rotations, None, None, None, None, None
+        # The gradient of the columns after the colour, then the whole rows' in one pass.
+        v_tail = rows.new_zeros(rows.shape[0], rows.shape[1] - columns.colour)
+        if v_lift is not None:
+            v_tail[:, _NORMAL] = v_normals
+            v_tail[:, _DISPLACEMENT] = v_lift
+            if columns.offset is not None:
+                v_tail[:, columns.offset] = v_lift
+        if v_scales is not None:
+            v_tail[:, _SCALE] = v_scales * scales  # exp's backward, as torch's
+        if v_opacities is not None:
+            v_tail[:, _OPACITY] = v_opacities * (1 - opacities) * opacities  # sigmoid's
+        if v_offset and v_offset[0] is not None:
+            v_tail[:, columns.offset] += v_offset[0]
+        if v_colors is None:
+            v_rows = rows.new_zeros(rows.shape)
             v_rows[:, columns.colour :] += v_tail
+            return v_rows, v_verts, v_rotations, None, None, None, None, None
+        v_rgb = v_colors
+        if gain is not None:
+            v_rgb = v_colors * gain[:, None]
+            v_gain = (v_colors * rgb).sum(-1)[:, None]
+            v_tail[:, columns.shading] = v_gain * _shading_features(frames)
+        v_rows = sh_shade_backward(rows, view_dirs, ctx.degree, v_rgb, (v_tail, columns.colour))
         return v_rows, v_verts, v_rotations, None, None, None, None, None
 
 

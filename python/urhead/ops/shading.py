@@ -19,14 +19,19 @@ def sh_shade_forward(coeffs, dirs, degree):
     return torch.from_numpy(rgb)
 
 
-def sh_shade_backward(coeffs, dirs, degree, v_rgb):
-    """The native adjoint: (P, S) gradient of the rows ``coeffs`` (zero past the colour)."""
+def sh_shade_backward(coeffs, dirs, degree, v_rgb, rest=None):
+    """The native adjoint: (P, S) gradient of the rows ``coeffs``, zero past the colour —
+    or, with ``rest = (values (P, W), start)``, those values at channels
+    ``start..start + W`` (the rows' other consumers' gradient, written in the same pass)."""
     dtype = coeffs.dtype
+    if rest is not None:
+        rest = (to_numpy("rest", rest[0], dtype), rest[1])
     v_coeffs = native("sh_shade_backward")(
         coeffs.detach().numpy(),
         dirs.detach().numpy(),
         degree,
         grad_to_numpy("v_rgb", v_rgb, dtype),
+        rest,
         num_threads(),
     )
     return torch.from_numpy(v_coeffs)

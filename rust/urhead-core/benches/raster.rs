@@ -310,7 +310,7 @@ fn bench_raster(c: &mut Criterion) {
         if !backward {
             return rgb.len();
         }
-        let mut v_rows = shade_backward(&shading, &v_rgb).unwrap();
+        let mut v_rows = shade_backward(&shading, &v_rgb, None).unwrap();
         for (row, v) in v_rows
             .chunks_exact_mut(CHANNELS)
             .zip(v_pixel_maps.chunks_exact(6))

@@ -33,7 +33,7 @@ fn bench_shading(c: &mut Criterion) {
     group.bench_function("forward_backward", |b| {
         b.iter(|| {
             shade_forward(&inputs).unwrap();
-            shade_backward(&inputs, &v_rgb).unwrap()
+            shade_backward(&inputs, &v_rgb, None).unwrap()
         })
     });
     group.finish();

@@ -85,13 +85,42 @@ pub fn shade_forward<T: Real>(inputs: &ShadingInputs<'_, T>) -> Result<Vec<T>> {
     Ok(out)
 }
 
+/// The gradient of the rows' other channels, given by the caller: `values (P, width)`
+/// for channels `start..start + width`, after the colour.
+#[derive(Clone, Copy)]
+pub struct RestGradient<'a, T> {
+    pub values: &'a [T],
+    pub start: usize,
+    pub width: usize,
+}
+
 /// ∂L/∂coeffs (P, stride) from ∂L/∂rgb (P, 3); channels clamped at 0 pass no gradient,
-/// entries past the colour are zero.
-pub fn shade_backward<T: Real>(inputs: &ShadingInputs<'_, T>, v_rgb: &[T]) -> Result<Vec<T>> {
+/// entries past the colour are zero, or with `rest` zero plus its rows at its channels —
+/// the whole rows' gradient when the other channels feed other ops, written in the same
+/// pass (no second pass over `(P, stride)` to add them).
+pub fn shade_backward<T: Real>(
+    inputs: &ShadingInputs<'_, T>,
+    v_rgb: &[T],
+    rest: Option<RestGradient<'_, T>>,
+) -> Result<Vec<T>> {
     let count = inputs.validate()?;
     check_len("v_rgb", v_rgb, count * 3, "(P, 3)")?;
     let stride = inputs.stride;
     let n = num_sh_coeffs(inputs.degree);
+    if let Some(rest) = &rest {
+        if rest.start < 3 * n || rest.start + rest.width > stride {
+            return Err(Error::Invalid {
+                arg: "rest",
+                reason: format!(
+                    "channels {}..{} must lie after the colour's {} and within the rows' {stride}",
+                    rest.start,
+                    rest.start + rest.width,
+                    3 * n
+                ),
+            });
+        }
+        check_len("rest", rest.values, count * rest.width, "(P, width)")?;
+    }
     let mut v_coeffs = vec![T::zero(); count * stride];
     v_coeffs
         .par_chunks_mut(CHUNK * stride)
@@ -102,6 +131,13 @@ pub fn shade_backward<T: Real>(inputs: &ShadingInputs<'_, T>, v_rgb: &[T]) -> Re
                 let (b, _) = sh_basis(inputs.degree, inputs.dir(i), false);
                 let v = unclamped(inputs.raw(i, &b), [0, 1, 2].map(|ch| v_rgb[3 * i + ch]));
                 sh_sum_adjoint(&b, v, &mut row[..3 * n]);
+                if let Some(rest) = &rest {
+                    let given = &rest.values[i * rest.width..(i + 1) * rest.width];
+                    for (out, &g) in row[rest.start..rest.start + rest.width].iter_mut().zip(given) {
+                        // Added to the zero entry, as autograd's sum would be (−0 becomes +0).
+                        *out = T::zero() + g;
+                    }
+                }
             }
         });
     Ok(v_coeffs)
@@ -143,7 +179,7 @@ mod tests {
             let rgb = shade_forward(&inputs).unwrap();
             let mut rng = Rng::new(3);
             let v_rgb: Vec<f64> = (0..rgb.len()).map(|_| rng.uniform(-1.0, 1.0)).collect();
-            let v = shade_backward(&inputs, &v_rgb).unwrap();
+            let v = shade_backward(&inputs, &v_rgb, None).unwrap();
             for i in 0..5000 {
                 let d = [dirs[3 * i], dirs[3 * i + 1], dirs[3 * i + 2]];
                 let row = &coeffs[i * stride..(i + 1) * stride];
@@ -179,6 +215,53 @@ mod tests {
         let mut bad = dirs.clone();
         bad[4] = f64::NAN;
         assert!(shade_forward(&ShadingInputs { dirs: &bad, ..ok }).is_err());
-        assert!(shade_backward(&ok, &[0.0; 11]).is_err());
+        assert!(shade_backward(&ok, &[0.0; 11], None).is_err());
+        let rest = |start, width, values: &'static [f64]| Some(RestGradient { values, start, width });
+        let v_rgb = [0.0; 12];
+        // Within the colour, past the rows, or the wrong length.
+        assert!(shade_backward(&ShadingInputs { degree: 1, ..ok }, &v_rgb, rest(11, 1, &[0.0; 4])).is_err());
+        assert!(shade_backward(&ShadingInputs { degree: 1, ..ok }, &v_rgb, rest(47, 2, &[0.0; 8])).is_err());
+        assert!(shade_backward(&ShadingInputs { degree: 1, ..ok }, &v_rgb, rest(40, 2, &[0.0; 7])).is_err());
+    }
+
+    /// The other channels' gradient lands at its channels, added to zero (−0 becomes +0),
+    /// and nothing else changes.
+    #[test]
+    fn the_rest_of_the_rows_gradient_is_written_in_place() {
+        let (count, stride, degree) = (3000, 48 + 8, 2);
+        let (coeffs, dirs) = case(count, stride);
+        let inputs = ShadingInputs {
+            coeffs: &coeffs,
+            dirs: &dirs,
+            stride,
+            degree,
+        };
+        let mut rng = Rng::new(5);
+        let v_rgb: Vec<f64> = (0..count * 3).map(|_| rng.uniform(-1.0, 1.0)).collect();
+        let (start, width) = (48, 6);
+        let mut values: Vec<f64> = (0..count * width).map(|_| rng.uniform(-1.0, 1.0)).collect();
+        values[7] = -0.0;
+        let rest = RestGradient {
+            values: &values,
+            start,
+            width,
+        };
+        let plain = shade_backward(&inputs, &v_rgb, None).unwrap();
+        let with_rest = shade_backward(&inputs, &v_rgb, Some(rest)).unwrap();
+        for i in 0..count {
+            let (a, b) = (
+                &plain[i * stride..(i + 1) * stride],
+                &with_rest[i * stride..(i + 1) * stride],
+            );
+            for ch in 0..stride {
+                let expected = match ch.checked_sub(start) {
+                    Some(k) if k < width => 0.0 + values[i * width + k],
+                    _ => a[ch],
+                };
+                assert_eq!(b[ch].to_bits(), expected.to_bits(), "sample {i} channel {ch}");
+            }
+        }
+        // values[7] is sample 1's second channel: −0 written as +0.
+        assert_eq!(with_rest[stride + start + 1].to_bits(), 0.0f64.to_bits());
     }
 }

@@ -3,7 +3,7 @@
 
 use numpy::{Element, PyReadonlyArrayDyn};
 use pyo3::prelude::*;
-use urhead_core::shading::{shade_backward, shade_forward, ShadingInputs};
+use urhead_core::shading::{shade_backward, shade_forward, RestGradient, ShadingInputs};
 use urhead_core::Real;
 
 use crate::arrays::{array, data, shape, with_float_type};
@@ -54,12 +54,21 @@ fn backward<'py, T: Element + Real>(
     dirs: Arr<'py, T>,
     degree: usize,
     v_rgb: Arr<'py, T>,
+    rest: Option<(Arr<'py, T>, usize)>,
     num_threads: usize,
 ) -> PyResult<Bound<'py, PyAny>> {
     let (inputs, count) = inputs(&coeffs, &dirs, degree)?;
     let v = data(&v_rgb, "v_rgb")?;
+    let rest = match &rest {
+        None => None,
+        Some((values, start)) => Some(RestGradient {
+            width: shape(values, "rest", 2, "(P, width)")?[1],
+            values: data(values, "rest")?,
+            start: *start,
+        }),
+    };
     let grad = py
-        .allow_threads(|| with_threads(num_threads, || shade_backward(&inputs, v)))
+        .allow_threads(|| with_threads(num_threads, || shade_backward(&inputs, v, rest)))
         .map_err(py_err)?;
     Ok(array(py, grad, &[count, inputs.stride])?.into_any())
 }
@@ -82,14 +91,18 @@ pub fn sh_shade_forward<'py>(
     ))
 }
 
-/// (P, stride) gradient of the coefficient rows from the (P, 3) colour gradient.
+/// (P, stride) gradient of the coefficient rows from the (P, 3) colour gradient; with
+/// `rest = (values (P, width), start)` the other channels' gradient written at channels
+/// `start..start + width` in the same pass.
 #[pyfunction]
+#[pyo3(signature = (coeffs, dirs, degree, v_rgb, rest, num_threads))]
 pub fn sh_shade_backward<'py>(
     py: Python<'py>,
     coeffs: &Bound<'py, PyAny>,
     dirs: &Bound<'py, PyAny>,
     degree: usize,
     v_rgb: &Bound<'py, PyAny>,
+    rest: Option<(Bound<'py, PyAny>, usize)>,
     num_threads: usize,
 ) -> PyResult<Bound<'py, PyAny>> {
     with_float_type!(coeffs, T => backward::<T>(
@@ -98,6 +111,7 @@ pub fn sh_shade_backward<'py>(
         dirs.extract()?,
         degree,
         v_rgb.extract()?,
+        rest.map(|(values, start)| values.extract().map(|v| (v, start))).transpose()?,
         num_threads,
     ))
 }

@@ -405,7 +405,7 @@ mod tests {
             let v_values = Rng::new(2).vec::<f64>(6 * n, -1.0, 1.0);
             let grads = backward(&inputs(&tex, &uv, &dirs, degree), &out, &v_values);
             let v_rgb: Vec<f64> = v_values.chunks(6).flat_map(|v| v[..3].to_vec()).collect();
-            let mut expected_rows = shade_backward(&shading, &v_rgb).unwrap();
+            let mut expected_rows = shade_backward(&shading, &v_rgb, None).unwrap();
             for s in 0..n {
                 expected_rows[s * C + 48..s * C + 51].copy_from_slice(&v_values[6 * s + 3..6 * s + 6]);
                 assert_eq!(
