@@ -867,7 +867,8 @@ mod tests {
         ];
         for (ch, table, value) in stored {
             for finite_neighbour in [f32::MAX, -f32::MAX, 1e38] {
-                let (mut p, mut m, mut v, mut s) = state(2, c);
+                let mut tables = state(2, c);
+                let (p, m, v, _) = &mut tables;
                 // Row 0 is finite but at the edge of the range; row 1 holds the special.
                 p[..c].fill(finite_neighbour);
                 m[..c].fill(finite_neighbour);
@@ -877,13 +878,7 @@ mod tests {
                     "v" => v[c + ch] = value,
                     _ => p[c + ch] = value,
                 }
-                let mut st = SparseAdamState {
-                    param: &mut p,
-                    exp_avg: &mut m,
-                    exp_avg_sq: &mut v,
-                    steps: &mut s,
-                    channels: c,
-                };
+                let mut st = as_state(&mut tables, c);
                 let grads = [0.5; 6];
                 let report = sparse_adam_step(&mut st, &[0, 1], &grads, &[1e-3; 3], &CONFIG, None).unwrap();
                 assert_eq!(
