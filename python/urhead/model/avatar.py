@@ -21,8 +21,8 @@ import torch
 
 from urhead.camera import Camera
 from urhead.head.model import HeadModel, LbsTables
-from urhead.model.lift_rows import lift_rows
-from urhead.model.map_layout import SHADING_FEATURES, MapLayout
+from urhead.model.lift_rows import GaussianLift, lift_rows
+from urhead.model.map_layout import SHADING_FEATURES, MapLayout, shading_features
 from urhead.ops import (
     antialias,
     antialias_topology,
@@ -96,27 +96,6 @@ class MeshRender(NamedTuple):
     """(H, W) int32 triangle seen at each pixel centre, −1 where empty."""
     rgba: torch.Tensor
     """(H, W, 4) the antialiased colour and coverage ``image`` and ``alpha`` view."""
-
-
-class GaussianLift(NamedTuple):
-    """The Gaussians of one frame, lifted from their UV points."""
-
-    means: torch.Tensor
-    """(N, 3) world positions."""
-    quats: torch.Tensor
-    """(N, 4) rotations (w, x, y, z), local z along the posed normal."""
-    scales: torch.Tensor
-    """(N, 3) standard deviations, metres."""
-    opacities: torch.Tensor
-    """(N,) opacities in (0, 1)."""
-    colors: torch.Tensor
-    """(N, 3) colours seen from this frame's camera."""
-    sh: torch.Tensor
-    """(N, K, 3) SH coefficients, in the surface's rest frame."""
-    frames: torch.Tensor
-    """(N, 3, 3) skinning rotation at each Gaussian (rest frame → world), detached."""
-    offset: torch.Tensor | None = None
-    """(N,) each Gaussian's own offset E along the normal, metres (None without E)."""
 
 
 class GaussianRender(NamedTuple):
@@ -396,27 +375,15 @@ class Avatar:
         scale, opacity and colour from the maps — one autograd node from the map rows
         (:func:`~urhead.model.lift_rows.lift_rows`; the geometry is
         :func:`~urhead.ops.lift_gaussians_geometry`'s kernel)."""
-        layout = self.layout
-        rows = self.lookup_fixed(self.gaussian_uv, gather)
-        lifted = lift_rows(
-            rows,
-            layout,
+        return lift_rows(
+            self.lookup_fixed(self.gaussian_uv, gather),
+            self.layout,
             verts,
             rotations,
             self.gaussian_face_verts(),
             self.gaussian_bary,
             camera.center,
             self._sh_degree(sh_degree),
-        )
-        return GaussianLift(
-            means=lifted.means,
-            quats=lifted.quats,
-            scales=lifted.scales,
-            opacities=lifted.opacities,
-            colors=lifted.colors,
-            sh=rows[:, layout.color].reshape(-1, layout.sh_coeffs, 3),
-            frames=lifted.frames,
-            offset=lifted.offset,
         )
 
     def gaussian_face_verts(self) -> torch.Tensor:
@@ -461,8 +428,7 @@ class Avatar:
 def _shading_gain(rgb: torch.Tensor, shading: torch.Tensor, rotation: torch.Tensor):
     """``rgb (P, 3)`` scaled by 1 + Σ A_ij (R − I)_ij, with the shading maps' samples
     ``shading (P, 9)`` and the skinning rotations ``rotation (P, 3, 3)``."""
-    features = (rotation - torch.eye(3, dtype=rotation.dtype)).reshape(-1, 9)
-    return rgb * (1 + (shading * features).sum(-1))[:, None]
+    return rgb * (1 + (shading * shading_features(rotation)).sum(-1))[:, None]
 
 
 @dataclass(frozen=True, eq=False)

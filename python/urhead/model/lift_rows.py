@@ -18,27 +18,30 @@ from typing import NamedTuple
 
 import torch
 
-from urhead.model.map_layout import SHADING_FEATURES, MapLayout
+from urhead.model.map_layout import MapLayout, shading_features
 from urhead.ops.lift import lift_backward, lift_forward
 from urhead.ops.shading import sh_shade_backward, sh_shade_forward
 
 
-class RowsLift(NamedTuple):
+class GaussianLift(NamedTuple):
+    """The Gaussians of one frame, lifted from their UV points."""
+
     means: torch.Tensor
     """(N, 3) world positions."""
     quats: torch.Tensor
     """(N, 4) rotations (w, x, y, z), local z along the posed normal."""
     scales: torch.Tensor
-    """(N, 3) standard deviations ``exp(S)``."""
+    """(N, 3) standard deviations, metres."""
     opacities: torch.Tensor
-    """(N,) ``sigmoid(O)``."""
+    """(N,) opacities in (0, 1)."""
     colors: torch.Tensor
-    """(N, 3) SH colours along the rest-frame view directions (times the shading gain with
-    shading maps)."""
+    """(N, 3) colours seen from this frame's camera."""
+    sh: torch.Tensor
+    """(N, K, 3) SH coefficients, in the surface's rest frame."""
     frames: torch.Tensor
-    """(N, 3, 3) blended skinning rotations; no gradient."""
-    offset: torch.Tensor | None
-    """(N,) the offset map E's samples (None without E)."""
+    """(N, 3, 3) skinning rotation at each Gaussian (rest frame → world), detached."""
+    offset: torch.Tensor | None = None
+    """(N,) each Gaussian's own offset E along the normal, metres (None without E)."""
 
 
 class _Columns(NamedTuple):
@@ -64,11 +67,6 @@ class _Columns(NamedTuple):
 _NORMAL, _DISPLACEMENT, _OPACITY, _SCALE = slice(0, 3), 3, 4, slice(5, 8)
 
 
-def _shading_features(frames: torch.Tensor) -> torch.Tensor:
-    """(N, 9) the entries of R − I, the shading maps' features."""
-    return (frames - torch.eye(3, dtype=frames.dtype)).reshape(-1, SHADING_FEATURES)
-
-
 class _LiftRows(torch.autograd.Function):
     @staticmethod
     def forward(ctx, rows, verts, rotations, face_verts, bary, centre, columns, degree):
@@ -82,13 +80,14 @@ class _LiftRows(torch.autograd.Function):
         scales = tail[:, _SCALE].contiguous().exp()
         opacities = torch.sigmoid(tail[:, _OPACITY].contiguous())
         rgb = sh_shade_forward(rows, view_dirs, degree)
-        colors, gain = rgb, None
+        colors = rgb
+        features = gain = None
         if columns.shading is not None:
-            features = _shading_features(frames)
+            features = shading_features(frames)
             gain = 1 + (tail[:, columns.shading] * features).sum(-1)
             colors = rgb * gain[:, None]
         ctx.set_materialize_grads(False)
-        ctx.save_for_backward(rows, *saved, view_dirs, frames, scales, opacities, rgb, gain)
+        ctx.save_for_backward(rows, *saved, view_dirs, scales, opacities, rgb, features, gain)
         ctx.columns, ctx.degree = columns, degree
         ctx.mark_non_differentiable(frames)
         outputs = (means, quats, scales, opacities, colors, frames)
@@ -96,7 +95,7 @@ class _LiftRows(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, v_means, v_quats, v_scales, v_opacities, v_colors, _v_frames, *v_offset):
-        rows, *saved, view_dirs, frames, scales, opacities, rgb, gain = ctx.saved_tensors
+        rows, *saved, view_dirs, scales, opacities, rgb, features, gain = ctx.saved_tensors
         columns = ctx.columns
         need_rows, need_verts, need_rotations = ctx.needs_input_grad[:3]
         needs = (need_verts, need_rotations, need_rows, need_rows)
@@ -128,7 +127,7 @@ class _LiftRows(torch.autograd.Function):
         if gain is not None:
             v_rgb = v_colors * gain[:, None]
             v_gain = (v_colors * rgb).sum(-1)[:, None]
-            v_tail[:, columns.shading] = v_gain * _shading_features(frames)
+            v_tail[:, columns.shading] = v_gain * features
         v_rows = sh_shade_backward(rows, view_dirs, ctx.degree, v_rgb, (v_tail, columns.colour))
         return v_rows, v_verts, v_rotations, None, None, None, None, None
 
@@ -142,7 +141,7 @@ def lift_rows(
     bary: torch.Tensor,
     centre: torch.Tensor,
     degree: int,
-) -> RowsLift:
+) -> GaussianLift:
     """The Gaussians of one frame from their map rows (``(N, layout.channels)``, float32 or
     float64, contiguous), as :meth:`Avatar.lift_gaussians` defines them: the geometry of
     :func:`~urhead.ops.lift_gaussians_geometry` from the normal N and the lift D (+ E),
@@ -163,5 +162,14 @@ def lift_rows(
         _Columns.of(layout),
         degree,
     )
-    offset = outputs[6] if layout.offsets else None
-    return RowsLift(*outputs[:6], offset)
+    means, quats, scales, opacities, colors, frames, *offset = outputs
+    return GaussianLift(
+        means=means,
+        quats=quats,
+        scales=scales,
+        opacities=opacities,
+        colors=colors,
+        sh=rows[:, layout.color].reshape(-1, layout.sh_coeffs, 3),
+        frames=frames,
+        offset=offset[0] if offset else None,
+    )

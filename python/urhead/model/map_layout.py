@@ -37,6 +37,11 @@ SHADING_FEATURES = 9
 """Pose-driven shading: one coefficient per entry of the surface's rotation R − I."""
 
 
+def shading_features(rotation: torch.Tensor) -> torch.Tensor:
+    """(P, 9) the shading maps' features, the entries of R − I, from (P, 3, 3) rotations."""
+    return (rotation - torch.eye(3, dtype=rotation.dtype)).reshape(-1, SHADING_FEATURES)
+
+
 @dataclass(frozen=True)
 class MapLayout:
     """Where each map sits in the channel dimension, in this order:
