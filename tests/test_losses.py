@@ -2,6 +2,7 @@
 
 import math
 
+import pytest
 import torch
 import torch.nn.functional as F
 
@@ -97,3 +98,46 @@ def test_laplacian_loss_matches_the_dense_torch_expression_and_its_gradient():
         assert ours.dtype == torch.float32 and ours_v.grad.shape == shape
         assert abs(ours.item() - ref.item()) <= 1e-6 * ref.item()
         assert torch.allclose(ours_v.grad.double(), ref_v.grad, rtol=1e-5, atol=1e-9)
+
+
+def test_the_objective_is_the_papers_photometric_loss_with_its_terms_weighted_in_kernel():
+    """(1 − λ)·((1 − m)·L1(I) + m·L1(I_mesh)) + λ·(1 − SSIM(I)), as the paper writes it, with
+    the weights folded into the kernels: the same value and gradients (to rounding) as the
+    composition of unweighted terms, for the image and the mesh's RGBA, with and without
+    the Gaussian branch."""
+    from types import SimpleNamespace
+
+    from urhead.train.objective import Objective
+
+    g = torch.Generator().manual_seed(5)
+    target = torch.rand(40, 36, 3, generator=g)
+    image0 = (target + 0.2 * torch.randn(40, 36, 3, generator=g)).clamp(0, 1)
+    rgba0 = torch.rand(40, 36, 4, generator=g)
+    objective = Objective(
+        lambda_ssim=0.2,
+        mesh_term=0.2,
+        lambda_normal=0.0,
+        lambda_laplacian=0.0,
+        laplacian=None,
+        use_normals=False,
+    )
+    for gaussians in (SimpleNamespace(lift=SimpleNamespace(offset=None)), None):
+        image, rgba = image0.clone().requires_grad_(True), rgba0.clone().requires_grad_(True)
+        render = SimpleNamespace(image=image, mesh=SimpleNamespace(rgba=rgba), gaussians=gaussians)
+        loss = objective(render, SimpleNamespace(image=target))
+        loss.backward()
+        image_ref = image0.double().requires_grad_(True)
+        rgba_ref = rgba0.double().requires_grad_(True)
+        t = target.double()
+        photo = l1(image_ref, t)
+        if gaussians is not None:
+            photo = 0.8 * photo + 0.2 * l1(rgba_ref, t)
+        expected = 0.8 * photo + 0.2 * (1 - ssim(image_ref, t))
+        expected.backward()
+        assert loss.item() == pytest.approx(expected.item(), rel=1e-6)
+        assert (image.grad.double() - image_ref.grad).abs().max() < 1e-9
+        if gaussians is not None:
+            assert (rgba.grad.double() - rgba_ref.grad).abs().max() < 1e-9
+            assert rgba.grad[..., 3].abs().max() == 0  # alpha is not compared
+        else:
+            assert rgba.grad is None

@@ -154,6 +154,52 @@ def test_scaled_loss_scales_the_gradient():
     assert torch.allclose(x.grad, -0.2 * grad, rtol=1e-15, atol=0)
 
 
+@pytest.mark.parametrize("op", OPS)
+@pytest.mark.parametrize("weight", [0.64, -0.2, 0.0, 3.0])
+def test_a_weight_scales_the_value_and_the_kernels_gradient(op, weight):
+    """``weight`` multiplies the value and, inside the kernel, the gradient: a summed loss
+    of weighted terms hands that gradient back as computed, unscaled by the backward."""
+    from urhead.ops._bridge import native
+
+    kernel, reference = OPS[op]
+    image, target = images(17, 23, dtype=torch.float32, seed=21)
+    mask = make_mask("soft", 17, 23, torch.float32)
+    value, grad = value_and_grad(kernel, image, target, mask)
+    x = image.clone().requires_grad_(True)
+    weighted = kernel(x, target, mask, weight=weight)
+    (weighted + 0.5).backward()  # the incoming gradient is exactly 1
+    assert weighted.item() == pytest.approx(weight * value.item(), rel=1e-6, abs=1e-12)
+    _, in_kernel = native("masked_mean_grad")(
+        op, image.numpy(), target.numpy(), mask.numpy(), weight, 1
+    )
+    assert torch.equal(x.grad, torch.from_numpy(in_kernel))
+    largest = abs(weight) * grad.abs().max().item()
+    assert (x.grad - weight * grad).abs().max().item() <= 1e-5 * largest
+    # the same through the plain-torch reference, in float64
+    x_ref = image.double().requires_grad_(True)
+    (weight * reference(x_ref, target.double(), mask.double())).backward()
+    assert (x.grad.double() - x_ref.grad).abs().max().item() < 1e-7
+    # an incoming gradient other than 1 still scales it
+    x2 = image.clone().requires_grad_(True)
+    (3 * kernel(x2, target, mask, weight=weight)).backward()
+    assert torch.allclose(x2.grad, 3 * x.grad, rtol=1e-6, atol=0)
+
+
+@pytest.mark.parametrize("op", [masked_ssim, masked_l1])
+@pytest.mark.parametrize("weight", [float("nan"), float("inf"), True, "0.5", None])
+def test_a_weight_must_be_a_finite_number(op, weight):
+    image, target = images(8, 9)
+    with pytest.raises(InvalidArgumentError, match="weight"):
+        op(image, target, weight=weight)
+
+
+def test_the_losses_module_weights_its_plain_torch_fallback_too():
+    image, target = images(14, 15, seed=23)
+    y = target.clone().requires_grad_(True)  # a target with gradient: the fallback
+    for fn in (ssim, l1):
+        assert fn(image, y, weight=0.3).item() == pytest.approx(0.3 * fn(image, y).item())
+
+
 def test_no_grad_needed_returns_the_same_value():
     image, target = images(20, 20, seed=15)
     with_grad = masked_ssim(image.clone().requires_grad_(True), target)

@@ -110,7 +110,8 @@ def stage_functions(trainer, state):
 
     def loss_stage():
         x = _leaf(image)
-        loss = 0.8 * l1(x, frame.image) + 0.2 * (1 - ssim(x, frame.image))
+        # weighted inside the kernels, as the trainer's objective
+        loss = l1(x, frame.image, weight=0.8) + ssim(x, frame.image, weight=-0.2) + 0.2
         loss.backward()
 
     # A real iteration's lookups for the optimiser stage, which builds their gradient as

@@ -29,21 +29,22 @@ def _kernel_applies(image, target, mask) -> bool:
     )
 
 
-def ssim(image, target, mask=None) -> torch.Tensor:
-    """Mean SSIM inside ``mask``."""
+def ssim(image, target, mask=None, *, weight: float = 1.0) -> torch.Tensor:
+    """Mean SSIM inside ``mask``, times ``weight`` (a loss term's: the kernel scales its
+    gradient as it computes it)."""
     if _kernel_applies(image, target, mask):
         mask = None if mask is None else mask.contiguous()
-        return masked_ssim(image.contiguous(), target.contiguous(), mask)
-    return masked_mean(ssim_map(image, target), mask)
+        return masked_ssim(image.contiguous(), target.contiguous(), mask, weight=weight)
+    return weight * masked_mean(ssim_map(image, target), mask)
 
 
-def l1(image, target, mask=None) -> torch.Tensor:
-    """Mean absolute error inside ``mask``; ``image`` may hold more channels than
-    ``target``, its first C compared (an RGBA image against an RGB target)."""
+def l1(image, target, mask=None, *, weight: float = 1.0) -> torch.Tensor:
+    """Mean absolute error inside ``mask``, times ``weight``; ``image`` may hold more
+    channels than ``target``, its first C compared (an RGBA image against an RGB target)."""
     if _kernel_applies(image, target, mask):
         mask = None if mask is None else mask.contiguous()
-        return masked_l1(image.contiguous(), target.contiguous(), mask)
-    return masked_mean((image[..., : target.shape[-1]] - target).abs(), mask)
+        return masked_l1(image.contiguous(), target.contiguous(), mask, weight=weight)
+    return weight * masked_mean((image[..., : target.shape[-1]] - target).abs(), mask)
 
 
 def psnr(image, target, mask=None) -> torch.Tensor:

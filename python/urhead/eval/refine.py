@@ -135,7 +135,10 @@ def _adam_descent(avatar, camera, target, start, steps, settings, occlusion_awar
         optimizer.zero_grad(set_to_none=True)
         params = FlameParams(expr, pose, transl)
         image = avatar.render(params, camera, occlusion_aware=occlusion_aware).image
-        loss = (1 - w) * l1(image, target) + (w * (1 - ssim(image, target)) if w > 0 else 0)
+        # (1 − λ)·L1 + λ·(1 − SSIM), the weights inside the kernels (as the fit's objective)
+        loss = l1(image, target, weight=1 - w)
+        if w > 0:
+            loss = loss + ssim(image, target, weight=-w) + w
         value = float(loss.detach())
         losses.append(value)
         if value < best_loss and torch.isfinite(loss):

@@ -2,12 +2,16 @@
 kernels (the training loop's loss stage).
 
 Both kernels compute the value and, when ``image`` requires grad, its gradient in the same
-call (the SSIM gradient reuses the forward's blurred moments while they are in cache); the
-backward only scales that saved gradient by the incoming one. ``target`` and ``mask`` are
-constants.
+call (the SSIM gradient reuses the forward's blurred moments while they are in cache). A
+loss term's ``weight`` is folded into the kernel's per-pixel scale, so a loss built as a sum
+of weighted terms gets its gradient back as computed: the backward scales it only when the
+incoming gradient is not exactly 1 (saving a pass over the image per term a step).
+``target`` and ``mask`` are constants.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import torch
@@ -22,7 +26,7 @@ _NUMPY_DTYPES = {torch.float32: np.float32, torch.float64: np.float64}
 
 class _MaskedImageComparison(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, metric, image, target, mask):
+    def forward(ctx, metric, image, target, mask, weight):
         dtype = image.dtype
         args = (
             to_numpy("image", image, dtype),
@@ -31,25 +35,34 @@ class _MaskedImageComparison(torch.autograd.Function):
         )
         ctx.set_materialize_grads(False)
         if ctx.needs_input_grad[1]:
-            value, grad = native("masked_mean_grad")(metric, *args, num_threads())
+            value, grad = native("masked_mean_grad")(metric, *args, weight, num_threads())
             ctx.save_for_backward(torch.from_numpy(grad))
         else:
             value = native("masked_mean")(metric, *args, num_threads())
-        return torch.tensor(value, dtype=dtype)
+        return torch.tensor(weight * value, dtype=dtype)
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_value):
         if grad_value is None or not ctx.needs_input_grad[1]:
-            return None, None, None, None
+            return None, None, None, None, None
         (grad,) = ctx.saved_tensors
+        factor = grad_value.item()
+        if factor == 1.0:  # a weighted term of a summed loss: the gradient as computed
+            return None, grad, None, None, None
         # numpy, single-threaded: a torch elementwise op pays thread start-up on a busy machine
-        scaled = grad.numpy() * grad.numpy().dtype.type(grad_value.item())
-        return None, torch.from_numpy(scaled), None, None
+        scaled = grad.numpy() * grad.numpy().dtype.type(factor)
+        return None, torch.from_numpy(scaled), None, None, None
 
 
-def _apply(metric: str, image, target, mask) -> torch.Tensor:
+def _apply(metric: str, image, target, mask, weight) -> torch.Tensor:
     dtype = float_dtype("image", image)
+    if (
+        isinstance(weight, bool)
+        or not isinstance(weight, (int, float))
+        or not math.isfinite(weight)
+    ):
+        raise InvalidArgumentError(f"weight must be a finite number, got {weight!r}")
     for arg, t in (("target", target), ("mask", mask)):
         if t is not None and isinstance(t, torch.Tensor) and t.requires_grad:
             raise InvalidArgumentError(
@@ -61,14 +74,20 @@ def _apply(metric: str, image, target, mask) -> torch.Tensor:
         if mask.dtype != dtype and mask.dtype in (torch.bool, torch.float32, torch.float64):
             # (H, W) is small next to the images; numpy converts without thread start-up
             mask = torch.from_numpy(mask.detach().numpy().astype(_NUMPY_DTYPES[dtype]))
-    return _MaskedImageComparison.apply(metric, image, target, mask)
+    return _MaskedImageComparison.apply(metric, image, target, mask, float(weight))
 
 
 def masked_ssim(
-    image: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None
+    image: torch.Tensor,
+    target: torch.Tensor,
+    mask: torch.Tensor | None = None,
+    *,
+    weight: float = 1.0,
 ) -> torch.Tensor:
-    """Mean SSIM inside ``mask`` (a similarity: 1 for identical images), differentiable in
-    ``image``. Train with ``1 - masked_ssim(...)``.
+    """Mean SSIM inside ``mask`` (a similarity: 1 for identical images) times ``weight``,
+    differentiable in ``image``. Train with ``1 - masked_ssim(...)``, or with
+    ``λ + masked_ssim(..., weight=-λ)`` as one term of a summed loss (no pass over the
+    gradient to scale it).
 
     Per-pixel SSIM as :func:`urhead.ops._reference.ssim_map` (Gaussian window 11, σ = 1.5, zero
     padding, C1 = 0.01², C2 = 0.03², mean over channels), then ``Σ m·ssim / max(Σ m, 1)``.
@@ -77,19 +96,25 @@ def masked_ssim(
         image: (H, W, C) float32 or float64, contiguous, CPU.
         target: (H, W, C) of ``image``'s dtype; a constant (must not require grad).
         mask: (H, W) weights in [0, 1] (float or bool), or None for every pixel.
+        weight: a finite factor of the value and its gradient (a loss term's weight).
 
     Returns:
         A 0-dim tensor of ``image``'s dtype. An all-zero mask gives 0 with zero gradient.
     """
-    return _apply("ssim", image, target, mask)
+    return _apply("ssim", image, target, mask, weight)
 
 
 def masked_l1(
-    image: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None
+    image: torch.Tensor,
+    target: torch.Tensor,
+    mask: torch.Tensor | None = None,
+    *,
+    weight: float = 1.0,
 ) -> torch.Tensor:
-    """Mean absolute difference inside ``mask``: ``Σ m·|image − target| / max(C·Σ m, 1)``,
+    """Mean absolute difference inside ``mask`` times ``weight``:
+    ``weight · Σ m·|image − target| / max(C·Σ m, 1)``,
     differentiable in ``image`` (subgradient sign(0) = 0). Arguments as :func:`masked_ssim`,
     but ``image`` may be (H, W, S) with S ≥ C, the target's channels: its first C are
     compared where they lie (a mesh's RGBA against an RGB frame, with no copy of its colour
     and no scatter of the gradient back into the RGBA); its gradient is zero past them."""
-    return _apply("l1", image, target, mask)
+    return _apply("l1", image, target, mask, weight)

@@ -61,15 +61,17 @@ class Objective:
         """The loss (a scalar) of one rendered training frame (a dataset :class:`Frame`)."""
         target = frame.image
         image = render.image
-        l1_full = l1(image, target)
-        photo = l1_full
+        # (1 − λ)·photo + λ·(1 − SSIM), each term weighted inside its kernel, so the summed
+        # loss hands every kernel's gradient back unscaled (no pass over an image to scale it).
+        photo_weight = 1 - self.lambda_ssim
         if render.gaussians is not None and self.mesh_term > 0:
-            l1_mesh = l1(render.mesh.rgba, target)  # its colour read in place
-            photo = (1 - self.mesh_term) * l1_full + self.mesh_term * l1_mesh
-        total = (1 - self.lambda_ssim) * photo
+            total = l1(image, target, weight=photo_weight * (1 - self.mesh_term))
+            # the mesh's colour read in place from its RGBA
+            total = total + l1(render.mesh.rgba, target, weight=photo_weight * self.mesh_term)
+        else:
+            total = l1(image, target, weight=photo_weight)
         if self.lambda_ssim > 0:
-            d_ssim = 1 - ssim(image, target)
-            total = total + self.lambda_ssim * d_ssim
+            total = total + ssim(image, target, weight=-self.lambda_ssim) + self.lambda_ssim
         if self.use_normals and self.lambda_normal > 0:
             normal = normal_loss(render, frame)
             total = total + self.lambda_normal * normal

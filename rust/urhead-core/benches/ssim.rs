@@ -41,13 +41,13 @@ fn bench_ssim(c: &mut Criterion) {
     let mut group = c.benchmark_group("ssim_512x512x3_f32");
     group.bench_function("forward", |b| b.iter(|| masked_ssim(&inputs).unwrap()));
     group.bench_function("forward_backward", |b| {
-        b.iter(|| masked_ssim_with_grad(&inputs).unwrap())
+        b.iter(|| masked_ssim_with_grad(&inputs, 1.0).unwrap())
     });
     group.finish();
     let mut group = c.benchmark_group("l1_512x512x3_f32");
     group.bench_function("forward", |b| b.iter(|| masked_l1(&inputs).unwrap()));
     group.bench_function("forward_backward", |b| {
-        b.iter(|| masked_l1_with_grad(&inputs).unwrap())
+        b.iter(|| masked_l1_with_grad(&inputs, 1.0).unwrap())
     });
     group.finish();
 }

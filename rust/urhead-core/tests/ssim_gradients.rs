@@ -122,7 +122,7 @@ fn cases() -> Vec<Case> {
 fn value_matches_direct_definition() {
     for case in cases() {
         let ours = masked_ssim(&case.inputs(&case.x)).unwrap();
-        let (fused, _) = masked_ssim_with_grad(&case.inputs(&case.x)).unwrap();
+        let (fused, _) = masked_ssim_with_grad(&case.inputs(&case.x), 1.0).unwrap();
         let direct = case.direct(&case.x);
         assert!(
             (ours - direct).abs() < 1e-14,
@@ -137,7 +137,7 @@ fn value_matches_direct_definition() {
 #[test]
 fn gradient_matches_central_differences() {
     for case in cases() {
-        let (_, grad) = masked_ssim_with_grad(&case.inputs(&case.x)).unwrap();
+        let (_, grad) = masked_ssim_with_grad(&case.inputs(&case.x), 1.0).unwrap();
         let mut rng = Rng::new(11);
         for _ in 0..3 {
             let dir: Vec<f64> = rng.vec(case.x.len(), -1.0, 1.0);
@@ -161,7 +161,7 @@ fn gradient_matches_central_differences() {
 #[test]
 fn gradient_elements_match_central_differences_near_borders() {
     let case = Case::new(9, 14, 2, 21).with_soft_mask(22);
-    let (_, grad) = masked_ssim_with_grad(&case.inputs(&case.x)).unwrap();
+    let (_, grad) = masked_ssim_with_grad(&case.inputs(&case.x), 1.0).unwrap();
     let eps = 1e-6;
     let mut worst: f64 = 0.0;
     for k in 0..case.x.len() {
@@ -178,7 +178,7 @@ fn gradient_elements_match_central_differences_near_borders() {
 #[test]
 fn identical_images_score_one_with_zero_gradient() {
     let case = Case::new(20, 9, 3, 31);
-    let (value, grad) = masked_ssim_with_grad(&case.inputs(&case.y)).unwrap();
+    let (value, grad) = masked_ssim_with_grad(&case.inputs(&case.y), 1.0).unwrap();
     assert!((value - 1.0).abs() < 1e-14);
     assert!(grad.iter().all(|g| g.abs() < 1e-13));
 }
@@ -187,7 +187,7 @@ fn identical_images_score_one_with_zero_gradient() {
 fn all_zero_mask_gives_zero_value_and_gradient() {
     let mut case = Case::new(12, 12, 3, 41);
     case.mask = Some(vec![0.0; 144]);
-    let (value, grad) = masked_ssim_with_grad(&case.inputs(&case.x)).unwrap();
+    let (value, grad) = masked_ssim_with_grad(&case.inputs(&case.x), 1.0).unwrap();
     assert_eq!(value, 0.0);
     assert!(grad.iter().all(|&g| g == 0.0));
 }
@@ -208,7 +208,7 @@ fn thread_count_does_not_change_bits() {
         channels: c,
         image_channels: c,
     };
-    let run = |threads: usize| on_threads(threads, || masked_ssim_with_grad(&inputs).unwrap());
+    let run = |threads: usize| on_threads(threads, || masked_ssim_with_grad(&inputs, 1.0).unwrap());
     let (v1, g1) = run(1);
     for threads in [2, 4] {
         let (v, g) = run(threads);
@@ -239,7 +239,7 @@ fn bad_inputs_are_rejected_by_name() {
     bad_mask.mask = Some(vec![1.5; 16]);
     let x = bad_mask.x.clone();
     assert!(matches!(
-        masked_ssim_with_grad(&bad_mask.inputs(&x)),
+        masked_ssim_with_grad(&bad_mask.inputs(&x), 1.0),
         Err(Error::Invalid { arg: "mask", .. })
     ));
 }
@@ -249,7 +249,7 @@ fn l1_matches_definition_and_its_subgradient() {
     for case in cases() {
         let mut x = case.x.clone();
         x[0] = case.y[0]; // a zero difference: subgradient 0
-        let (value, grad) = masked_l1_with_grad(&case.inputs(&x)).unwrap();
+        let (value, grad) = masked_l1_with_grad(&case.inputs(&x), 1.0).unwrap();
         assert_eq!(value.to_bits(), masked_l1(&case.inputs(&x)).unwrap().to_bits());
         let c = case.c;
         let mask = |k: usize| case.mask.as_ref().map_or(1.0, |m| m[k / c]);
@@ -271,6 +271,40 @@ fn l1_matches_definition_and_its_subgradient() {
                 "{} vs {expected}",
                 grad[k]
             );
+        }
+    }
+}
+
+/// A loss term's weight scales the gradient (folded into the kernels' per-pixel scale, so
+/// within roundings of the unweighted gradient times it: SSIM's passes through its blurs'
+/// sums) and leaves the value alone; a non-finite weight is refused.
+#[test]
+fn a_weight_scales_the_gradient_only() {
+    type Kernel = for<'a> fn(&SsimInputs<'a, f64>, f64) -> urhead_core::Result<(f64, Vec<f64>)>;
+    let kernels: [(&str, Kernel); 2] = [("ssim", masked_ssim_with_grad), ("l1", masked_l1_with_grad)];
+    for case in cases() {
+        for (name, kernel) in kernels {
+            let inputs = case.inputs(&case.x);
+            let (value, grad) = kernel(&inputs, 1.0).unwrap();
+            let largest = grad.iter().fold(0.0f64, |a, g| a.max(g.abs()));
+            for weight in [0.64, -0.2, 0.0, 3.0] {
+                let (weighted_value, weighted) = kernel(&inputs, weight).unwrap();
+                assert_eq!(weighted_value.to_bits(), value.to_bits(), "{name}");
+                let tolerance = 64.0 * f64::EPSILON * weight.abs() * largest;
+                for (w, g) in weighted.iter().zip(&grad) {
+                    let expected = weight * g;
+                    assert!(
+                        (w - expected).abs() <= tolerance,
+                        "{name}, weight {weight}: {w} vs {expected}"
+                    );
+                }
+            }
+            for weight in [f64::NAN, f64::INFINITY] {
+                assert!(matches!(
+                    kernel(&inputs, weight),
+                    Err(Error::Invalid { arg: "weight", .. })
+                ));
+            }
         }
     }
 }

@@ -74,15 +74,16 @@ fn value<T: Element + Real>(
 fn value_and_grad<'py, T: Element + Real>(
     py: Python<'py>,
     metric: &str,
-    kernel: fn(&SsimInputs<'_, T>) -> Result<(T, Vec<T>)>,
+    kernel: fn(&SsimInputs<'_, T>, f64) -> Result<(T, Vec<T>)>,
     image: Arr<'py, T>,
     target: Arr<'py, T>,
     mask: Option<Arr<'py, T>>,
+    weight: f64,
     num_threads: usize,
 ) -> PyResult<(f64, Bound<'py, PyAny>)> {
     let inputs = inputs(metric, &image, &target, mask.as_ref())?;
     let (v, grad) = py
-        .allow_threads(|| with_threads(num_threads, || kernel(&inputs)))
+        .allow_threads(|| with_threads(num_threads, || kernel(&inputs, weight)))
         .map_err(py_err)?;
     let dims = [inputs.height, inputs.width, inputs.image_channels];
     Ok((v.to_f64().unwrap_or(f64::NAN), array(py, grad, &dims)?.into_any()))
@@ -94,7 +95,7 @@ fn kernels<T: Real>(
     metric: &str,
 ) -> PyResult<(
     fn(&SsimInputs<'_, T>) -> Result<T>,
-    fn(&SsimInputs<'_, T>) -> Result<(T, Vec<T>)>,
+    fn(&SsimInputs<'_, T>, f64) -> Result<(T, Vec<T>)>,
 )> {
     match metric {
         "ssim" => Ok((ssim::masked_ssim::<T>, ssim::masked_ssim_with_grad::<T>)),
@@ -127,14 +128,16 @@ pub fn masked_mean<'py>(
     ))
 }
 
-/// Masked mean `metric` and its (H, W, C) gradient in `image`.
+/// Masked mean `metric` and the (H, W, C) gradient of `weight ·` it in `image`.
 #[pyfunction]
+#[allow(clippy::too_many_arguments)]
 pub fn masked_mean_grad<'py>(
     py: Python<'py>,
     metric: &str,
     image: &Bound<'py, PyAny>,
     target: &Bound<'py, PyAny>,
     mask: Option<&Bound<'py, PyAny>>,
+    weight: f64,
     num_threads: usize,
 ) -> PyResult<(f64, Bound<'py, PyAny>)> {
     with_float_type!(image, T => value_and_grad(
@@ -144,6 +147,7 @@ pub fn masked_mean_grad<'py>(
         image.extract()?,
         target.extract()?,
         optional_array(mask)?,
+        weight,
         num_threads,
     ))
 }

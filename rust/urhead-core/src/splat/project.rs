@@ -6,7 +6,7 @@ use rayon::prelude::*;
 
 use super::{ProjectGradOutputs, ProjectGrads, ProjectInputs, ProjectNeeds, Projected, GAUSSIAN_CHUNK};
 use super::{ALPHA_MIN, DILATION, EXTENT_CAP};
-use crate::mat3::{matmul, matmul_nt, matmul_tn, transpose, M3, V3};
+use crate::mat3::{map2, map3, map4, matmul, matmul_nt, matmul_tn, transpose, M3, V3};
 use crate::parallel::optional_chunks;
 use crate::sh::{sh_to_rgb, sh_to_rgb_backward};
 use crate::{Camera, Real};
@@ -36,14 +36,14 @@ pub(super) struct CameraT<T> {
 impl<T: Real> CameraT<T> {
     pub(super) fn new(cam: &Camera) -> Self {
         let c = |x: f32| T::c(x as f64);
-        let rot: M3<T> = [0, 1, 2].map(|r| [0, 1, 2].map(|k| c(cam.viewmat[r][k])));
-        let trans: V3<T> = [0, 1, 2].map(|r| c(cam.viewmat[r][3]));
+        let rot: M3<T> = map3(|r| map3(|k| c(cam.viewmat[r][k])));
+        let trans: V3<T> = map3(|r| c(cam.viewmat[r][3]));
         let (fx, fy, cx, cy) = (c(cam.fx), c(cam.fy), c(cam.cx), c(cam.cy));
         let (w, h) = (T::c(cam.width as f64), T::c(cam.height as f64));
         let half = T::c(0.5);
         let margin = T::c(0.3);
         let (tan_x, tan_y) = (half * w / fx, half * h / fy);
-        let rt_t = [0, 1, 2].map(|k| rot[0][k] * trans[0] + rot[1][k] * trans[1] + rot[2][k] * trans[2]);
+        let rt_t = map3(|k| rot[0][k] * trans[0] + rot[1][k] * trans[1] + rot[2][k] * trans[2]);
         Self {
             fx,
             fy,
@@ -164,8 +164,7 @@ pub(super) fn project_one<T: Real>(
     opacity: T,
 ) -> Option<ProjectedOne<T>> {
     let r = &cam.rot;
-    let p_cam: V3<T> =
-        [0, 1, 2].map(|i| r[i][0] * mean[0] + r[i][1] * mean[1] + r[i][2] * mean[2] + cam.trans[i]);
+    let p_cam: V3<T> = map3(|i| r[i][0] * mean[0] + r[i][1] * mean[1] + r[i][2] * mean[2] + cam.trans[i]);
     let [x, y, z] = p_cam;
     if !(z >= cam.near && z <= cam.far) {
         return None;
@@ -184,9 +183,9 @@ pub(super) fn project_one<T: Real>(
         return None;
     }
     let quat_norm = n2.sqrt();
-    let q = quat.map(|v| v / quat_norm);
+    let q = map4(|k| quat[k] / quat_norm);
     let rot = quat_to_rotmat(q);
-    let m: M3<T> = [0, 1, 2].map(|i| [0, 1, 2].map(|j| rot[i][j] * scale[j]));
+    let m: M3<T> = map3(|i| map3(|j| rot[i][j] * scale[j]));
     let cov_world = matmul_nt(&m, &m);
     let cov_cam = matmul(&matmul(r, &cov_world), &transpose(r));
 
@@ -253,8 +252,7 @@ fn clamp_ratio<T: Real>(u: T, neg: T, pos: T) -> (T, bool) {
 /// J·Σ·Jᵀ for a 2×3 J and symmetric Σ, as (a, b, c).
 #[inline]
 fn jac_cov_jt<T: Real>(j: &[V3<T>; 2], s: &M3<T>) -> [T; 3] {
-    let js: [V3<T>; 2] =
-        [0, 1].map(|r| [0, 1, 2].map(|k| j[r][0] * s[0][k] + j[r][1] * s[1][k] + j[r][2] * s[2][k]));
+    let js: [V3<T>; 2] = map2(|r| map3(|k| j[r][0] * s[0][k] + j[r][1] * s[1][k] + j[r][2] * s[2][k]));
     let dot = |a: &V3<T>, b: &V3<T>| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
     [dot(&js[0], &j[0]), dot(&js[0], &j[1]), dot(&js[1], &j[1])]
 }
@@ -262,9 +260,9 @@ fn jac_cov_jt<T: Real>(j: &[V3<T>; 2], s: &M3<T>) -> [T; 3] {
 /// Unit view direction from the camera centre to `mean`, and the distance.
 #[inline]
 pub(super) fn view_dir<T: Real>(cam: &CameraT<T>, mean: V3<T>) -> (V3<T>, T) {
-    let d: V3<T> = [0, 1, 2].map(|i| mean[i] - cam.centre[i]);
+    let d: V3<T> = map3(|i| mean[i] - cam.centre[i]);
     let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-    (d.map(|v| v / len), len)
+    (map3(|k| d[k] / len), len)
 }
 
 pub fn project_forward<T: Real>(camera: &Camera, inputs: &ProjectInputs<T>) -> crate::Result<Projected<T>> {
@@ -370,8 +368,7 @@ pub fn project_backward<T: Real>(
                     .map_or([T::zero(); 3], |g| [g[i * 3], g[i * 3 + 1], g[i * 3 + 2]]);
                 let (v_pc, v_q, v_s) = project_one_backward(&cam, &p, v_mean2d, v_conic);
                 let r = &cam.rot;
-                let mut v_mean: V3<T> =
-                    [0, 1, 2].map(|j| r[0][j] * v_pc[0] + r[1][j] * v_pc[1] + r[2][j] * v_pc[2]);
+                let mut v_mean: V3<T> = map3(|j| r[0][j] * v_pc[0] + r[1][j] * v_pc[1] + r[2][j] * v_pc[2]);
                 if let (Some(sh), Some(g)) = (inputs.sh, grads.v_colors) {
                     let (dir, len) = view_dir(&cam, inputs.mean(i));
                     let v_rgb = [g[i * 3], g[i * 3 + 1], g[i * 3 + 2]];
@@ -431,26 +428,24 @@ fn project_one_backward<T: Real>(
     }
     // cov2d = J·Σc·Jᵀ (+ dilation): ∂L/∂Σc = Jᵀ·G·J, ∂L/∂J = 2·G·J·Σc.
     let j = &p.jac;
-    let gj: [V3<T>; 2] = [0, 1].map(|r| [0, 1, 2].map(|k| g_cov[r][0] * j[0][k] + g_cov[r][1] * j[1][k]));
-    let g_sigma_cam: M3<T> = [0, 1, 2].map(|a| [0, 1, 2].map(|b| j[0][a] * gj[0][b] + j[1][a] * gj[1][b]));
-    let v_jac: [V3<T>; 2] = [0, 1].map(|r| {
-        [0, 1, 2].map(|k| {
-            two * (gj[r][0] * p.cov_cam[0][k] + gj[r][1] * p.cov_cam[1][k] + gj[r][2] * p.cov_cam[2][k])
-        })
+    let gj: [V3<T>; 2] = map2(|r| map3(|k| g_cov[r][0] * j[0][k] + g_cov[r][1] * j[1][k]));
+    let g_sigma_cam: M3<T> = map3(|a| map3(|b| j[0][a] * gj[0][b] + j[1][a] * gj[1][b]));
+    let v_jac: [V3<T>; 2] = map2(|r| {
+        map3(|k| two * (gj[r][0] * p.cov_cam[0][k] + gj[r][1] * p.cov_cam[1][k] + gj[r][2] * p.cov_cam[2][k]))
     });
     // Σc = W·Σ·Wᵀ, Σ = M·Mᵀ, M = R·diag(s).
     let w = &cam.rot;
     let g_sigma = matmul(&matmul_tn(w, &g_sigma_cam), w);
-    let m: M3<T> = [0, 1, 2].map(|a| [0, 1, 2].map(|b| p.rot[a][b] * p.scale[b]));
-    let g_m: M3<T> = [0, 1, 2].map(|a| {
-        [0, 1, 2].map(|b| two * (g_sigma[a][0] * m[0][b] + g_sigma[a][1] * m[1][b] + g_sigma[a][2] * m[2][b]))
+    let m: M3<T> = map3(|a| map3(|b| p.rot[a][b] * p.scale[b]));
+    let g_m: M3<T> = map3(|a| {
+        map3(|b| two * (g_sigma[a][0] * m[0][b] + g_sigma[a][1] * m[1][b] + g_sigma[a][2] * m[2][b]))
     });
-    let g_rot: M3<T> = [0, 1, 2].map(|a| [0, 1, 2].map(|b| g_m[a][b] * p.scale[b]));
+    let g_rot: M3<T> = map3(|a| map3(|b| g_m[a][b] * p.scale[b]));
     let v_scale: V3<T> =
-        [0, 1, 2].map(|b| p.rot[0][b] * g_m[0][b] + p.rot[1][b] * g_m[1][b] + p.rot[2][b] * g_m[2][b]);
+        map3(|b| p.rot[0][b] * g_m[0][b] + p.rot[1][b] * g_m[1][b] + p.rot[2][b] * g_m[2][b]);
     let v_qn = quat_to_rotmat_backward(p.q, &g_rot);
     let dotq = (0..4).fold(zero, |s, k| s + p.q[k] * v_qn[k]);
-    let v_quat = [0, 1, 2, 3].map(|k| (v_qn[k] - p.q[k] * dotq) / p.quat_norm);
+    let v_quat = map4(|k| (v_qn[k] - p.q[k] * dotq) / p.quat_norm);
 
     // mean2d = (fx·x/z + cx, fy·y/z + cy)
     let rz = T::one() / z;
@@ -516,7 +511,7 @@ mod tests {
         let p = project_one(&cam, mean, quat, scale, 0.8).unwrap();
         assert_eq!(p.clamped, expect_clamped);
         let (v_pc, v_q, v_s) = project_one_backward(&cam, &p, [w[0], w[1]], [w[2], w[3], w[4]]);
-        let v_mean: V3<f64> = [0, 1, 2].map(|j| (0..3).map(|i| cam.rot[i][j] * v_pc[i]).sum());
+        let v_mean: V3<f64> = map3(|j| (0..3).map(|i| cam.rot[i][j] * v_pc[i]).sum());
         let h = 1e-6;
         let mut worst = 0.0f64;
         for a in 0..3 {

@@ -14,7 +14,7 @@ use rayon::prelude::*;
 
 use super::blur::{PaddedRows, RowRing};
 use super::forward::{expand_mask_row, MomentStream, MOMENTS};
-use super::{bands, gaussian_window, PixelTerms, SsimInputs, BAND_ROWS, WINDOW};
+use super::{bands, check_weight, gaussian_window, PixelTerms, SsimInputs, BAND_ROWS, WINDOW};
 use crate::error::Result;
 use crate::memory::zeroed;
 use crate::parallel::dot;
@@ -38,12 +38,14 @@ fn pixel_adjoint<T: Real>(p: &PixelTerms<T>, g: T) -> (T, T, T, T) {
     (a, b, c, ssim)
 }
 
-/// Masked mean SSIM and its gradient with respect to `image` (`(H, W, C)`); the target and
-/// mask are constants. One fused pass; the gradient of a scaled loss is this one scaled.
-pub fn masked_ssim_with_grad<T: Real>(inputs: &SsimInputs<'_, T>) -> Result<(T, Vec<T>)> {
+/// Masked mean SSIM and the gradient of `weight ·` it with respect to `image` (`(H, W, C)`);
+/// the target and mask are constants. One fused pass; the weight (a loss term's) joins the
+/// mean's normalisation in the per-pixel scale, so no pass over the gradient scales it.
+pub fn masked_ssim_with_grad<T: Real>(inputs: &SsimInputs<'_, T>, weight: f64) -> Result<(T, Vec<T>)> {
+    check_weight(weight)?;
     let norm = inputs.validate_same_channels()?.max(1.0);
     let (h, len) = (inputs.height, inputs.width * inputs.channels);
-    let scale = T::c(1.0 / (norm * inputs.channels as f64));
+    let scale = T::c(weight / (norm * inputs.channels as f64));
     let mut grad = zeroed("SSIM gradient (H, W, C)", h * len)?;
     let partials: Vec<f64> = grad
         .par_chunks_mut(BAND_ROWS * len)

@@ -7,7 +7,7 @@
 use rayon::prelude::*;
 
 use super::forward::expand_mask_row;
-use super::{SsimInputs, BAND_ROWS};
+use super::{check_weight, SsimInputs, BAND_ROWS};
 use crate::error::Result;
 use crate::memory::{copy_short, zeroed};
 use crate::Real;
@@ -35,13 +35,15 @@ pub fn masked_l1<T: Real>(inputs: &SsimInputs<'_, T>) -> Result<T> {
     Ok(T::c(partials.iter().sum::<f64>() / denominator))
 }
 
-/// Masked mean absolute difference and its subgradient with respect to `image`.
-pub fn masked_l1_with_grad<T: Real>(inputs: &SsimInputs<'_, T>) -> Result<(T, Vec<T>)> {
+/// Masked mean absolute difference and the subgradient of `weight ·` it with respect to
+/// `image` (the weight folded into the per-pixel scale, as for SSIM).
+pub fn masked_l1_with_grad<T: Real>(inputs: &SsimInputs<'_, T>, weight: f64) -> Result<(T, Vec<T>)> {
+    check_weight(weight)?;
     let norm = inputs.validate()?;
     let (len, image_len) = row_lengths(inputs);
     let (c, s) = (inputs.channels, inputs.image_channels);
     let denominator = (norm * c as f64).max(1.0);
-    let scale = T::c(1.0 / denominator);
+    let scale = T::c(weight / denominator);
     let mut grad = zeroed("L1 gradient (H, W, S)", inputs.height * image_len)?;
     let partials: Vec<f64> = grad
         .par_chunks_mut(BAND_ROWS * image_len)

@@ -127,6 +127,17 @@ impl<T: Real> SsimInputs<'_, T> {
     }
 }
 
+/// A loss term's weight, which scales every gradient entry: finite.
+fn check_weight(weight: f64) -> Result<()> {
+    if weight.is_finite() {
+        return Ok(());
+    }
+    Err(Error::Invalid {
+        arg: "weight",
+        reason: format!("must be finite, got {weight}"),
+    })
+}
+
 /// The normalised 11-tap Gaussian, computed in f64 then rounded once.
 fn gaussian_window<T: Real>() -> [T; WINDOW] {
     let half = (WINDOW / 2) as f64;
