@@ -22,7 +22,12 @@ import torch
 from urhead.camera import Camera
 from urhead.head.model import HeadModel, LbsTables
 from urhead.model.lift_rows import GaussianLift, lift_rows
-from urhead.model.map_layout import SHADING_FEATURES, MapLayout, shading_features
+from urhead.model.map_layout import (
+    SHADING_FEATURES,
+    MapLayout,
+    shading_features,
+    shading_gain,
+)
 from urhead.ops import (
     antialias,
     antialias_topology,
@@ -428,7 +433,7 @@ class Avatar:
 def _shading_gain(rgb: torch.Tensor, shading: torch.Tensor, rotation: torch.Tensor):
     """``rgb (P, 3)`` scaled by 1 + Σ A_ij (R − I)_ij, with the shading maps' samples
     ``shading (P, 9)`` and the skinning rotations ``rotation (P, 3, 3)``."""
-    return rgb * (1 + (shading * shading_features(rotation)).sum(-1))[:, None]
+    return rgb * shading_gain(shading, shading_features(rotation))[:, None]
 
 
 @dataclass(frozen=True, eq=False)

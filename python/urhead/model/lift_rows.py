@@ -18,7 +18,7 @@ from typing import NamedTuple
 
 import torch
 
-from urhead.model.map_layout import MapLayout, shading_features
+from urhead.model.map_layout import MapLayout, shading_features, shading_gain
 from urhead.ops.lift import lift_backward, lift_forward
 from urhead.ops.shading import sh_shade_backward, sh_shade_forward
 
@@ -84,7 +84,7 @@ class _LiftRows(torch.autograd.Function):
         features = gain = None
         if columns.shading is not None:
             features = shading_features(frames)
-            gain = 1 + (tail[:, columns.shading] * features).sum(-1)
+            gain = shading_gain(tail[:, columns.shading], features)
             colors = rgb * gain[:, None]
         ctx.set_materialize_grads(False)
         ctx.save_for_backward(rows, *saved, view_dirs, scales, opacities, rgb, features, gain)
@@ -121,7 +121,7 @@ class _LiftRows(torch.autograd.Function):
             v_tail[:, columns.offset] += v_offset[0]
         if v_colors is None:
             v_rows = rows.new_zeros(rows.shape)
-            v_rows[:, columns.colour :] += v_tail
+            v_rows[:, columns.colour :] = v_tail
             return v_rows, v_verts, v_rotations, None, None, None, None, None
         v_rgb = v_colors
         if gain is not None:

@@ -42,6 +42,12 @@ def shading_features(rotation: torch.Tensor) -> torch.Tensor:
     return (rotation - torch.eye(3, dtype=rotation.dtype)).reshape(-1, SHADING_FEATURES)
 
 
+def shading_gain(shading: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
+    """(P,) the colour's factor 1 + Σ A_ij (R − I)_ij, from the shading maps' samples
+    ``shading (P, 9)`` and :func:`shading_features` of the rotations."""
+    return 1 + (shading * features).sum(-1)
+
+
 @dataclass(frozen=True)
 class MapLayout:
     """Where each map sits in the channel dimension, in this order:
