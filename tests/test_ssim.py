@@ -1,5 +1,6 @@
-"""urhead.ops.masked_ssim / masked_l1 against the plain-torch references (value and gradient),
-finite differences, edge cases, input errors and thread-count determinism."""
+"""urhead.ops.masked_ssim / masked_l1 (and the two in one pass, masked_ssim_l1) against the
+plain-torch references (value and gradient), finite differences, edge cases, input errors and
+thread-count determinism."""
 
 from __future__ import annotations
 
@@ -7,9 +8,9 @@ import pytest
 import torch
 
 from urhead.errors import DTypeError, InvalidArgumentError, NonFiniteError, ShapeError
-from urhead.losses import l1, ssim
+from urhead.losses import l1, ssim, ssim_l1
 from urhead.ops import _reference as ref
-from urhead.ops import masked_l1, masked_ssim
+from urhead.ops import masked_l1, masked_ssim, masked_ssim_l1
 
 OPS = {"ssim": (masked_ssim, ref.masked_ssim), "l1": (masked_l1, ref.masked_l1)}
 
@@ -266,3 +267,89 @@ def test_l1_reads_the_first_channels_of_a_wider_image_in_place(channels, extra, 
         masked_ssim(rgba, target)  # SSIM compares whole images
     with pytest.raises(ShapeError, match="target"):
         masked_l1(rgb, torch.cat([target, target[..., :1]], -1))  # fewer than the target
+
+
+@pytest.mark.parametrize("mask_kind", ["none", "binary", "soft", "zero"])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("weights", [(-0.2, 0.64), (1.0, 1.0), (0.0, 2.5), (0.7, 0.0)])
+def test_ssim_and_l1_in_one_pass_are_the_two_ops_apart(mask_kind, dtype, weights):
+    """The value is ``ssim_weight·SSIM + l1_weight·L1`` and the gradient is, bit for bit,
+    the sum of the two ops' (the kernel returns each term's value apart too); both follow
+    the float64 plain-torch references."""
+    from urhead.ops._bridge import native
+
+    ssim_weight, l1_weight = weights
+    image, target = images(37, 29, dtype=dtype, seed=31)
+    mask = make_mask(mask_kind, 37, 29, dtype)
+    x = image.clone().requires_grad_(True)
+    fused = masked_ssim_l1(x, target, mask, ssim_weight=ssim_weight, l1_weight=l1_weight)
+    (fused + 0.5).backward()
+    apart = [image.clone().requires_grad_(True) for _ in range(2)]
+    s_value = masked_ssim(apart[0], target, mask, weight=ssim_weight)
+    l_value = masked_l1(apart[1], target, mask, weight=l1_weight)
+    (s_value + l_value).backward()
+    # the terms summed in float64 before the value is rounded to the images' dtype
+    assert fused.item() == pytest.approx(s_value.item() + l_value.item(), rel=1e-7, abs=1e-9)
+    assert torch.equal(x.grad, apart[0].grad + apart[1].grad)
+    m = None if mask is None else mask.to(dtype).numpy()
+    ssim_alone, l1_alone, _ = native("masked_ssim_l1_grad")(
+        image.numpy(), target.numpy(), m, ssim_weight, l1_weight, 1
+    )
+    assert ssim_alone == masked_ssim(image, target, mask).item()
+    assert l1_alone == masked_l1(image, target, mask).item()
+    x_ref = image.double().requires_grad_(True)
+    m_ref = None if mask is None else mask.double()
+    ref_loss = ssim_weight * ref.masked_ssim(x_ref, target.double(), m_ref)
+    ref_loss = ref_loss + l1_weight * ref.masked_l1(x_ref, target.double(), m_ref)
+    ref_loss.backward()
+    tolerance = 1e-12 if dtype == torch.float64 else 2e-6
+    assert fused.item() == pytest.approx(ref_loss.item(), abs=tolerance)
+    assert (x.grad.double() - x_ref.grad).abs().max().item() < tolerance
+
+
+def test_ssim_and_l1_in_one_pass_scale_by_an_incoming_gradient_and_skip_it_unasked():
+    image, target = images(21, 18, seed=33)
+    x = image.clone().requires_grad_(True)
+    masked_ssim_l1(x, target, ssim_weight=-0.2, l1_weight=0.8).backward()
+    x3 = image.clone().requires_grad_(True)
+    (3 * masked_ssim_l1(x3, target, ssim_weight=-0.2, l1_weight=0.8)).backward()
+    assert torch.allclose(x3.grad, 3 * x.grad, rtol=1e-12, atol=0)
+    value = masked_ssim_l1(image, target, ssim_weight=-0.2, l1_weight=0.8)
+    assert not value.requires_grad
+    expected = -0.2 * masked_ssim(image, target).item() + 0.8 * masked_l1(image, target).item()
+    assert value.item() == expected
+
+
+@pytest.mark.parametrize("name", ["ssim_weight", "l1_weight"])
+@pytest.mark.parametrize("weight", [float("nan"), float("inf"), True, "0.5", None])
+def test_ssim_and_l1_weights_must_be_finite_numbers(name, weight):
+    image, target = images(8, 9)
+    weights = {"ssim_weight": 1.0, "l1_weight": 1.0, name: weight}
+    with pytest.raises(InvalidArgumentError, match=name):
+        masked_ssim_l1(image.requires_grad_(True), target, **weights)
+
+
+def test_ssim_and_l1_in_one_pass_refuse_what_ssim_refuses():
+    image, target = images(8, 9)
+    bad = image.clone()
+    bad[2, 3, 1] = float("nan")
+    with pytest.raises(NonFiniteError, match="image"):
+        masked_ssim_l1(bad.requires_grad_(True), target, ssim_weight=1.0, l1_weight=1.0)
+    rgba = torch.cat([image, torch.ones(8, 9, 1, dtype=image.dtype)], -1)
+    with pytest.raises(ShapeError, match="target"):  # SSIM compares whole images
+        masked_ssim_l1(rgba.requires_grad_(True), target, ssim_weight=1.0, l1_weight=1.0)
+
+
+def test_the_losses_module_ssim_l1_is_the_two_terms_in_kernel_and_in_fallback():
+    image, target = images(19, 16, seed=35)
+    mask = make_mask("soft", 19, 16)
+    x = image.clone().requires_grad_(True)
+    ssim_l1(x, target, mask, ssim_weight=-0.2, l1_weight=0.8).backward()
+    x_apart = image.clone().requires_grad_(True)
+    (ssim(x_apart, target, mask, weight=-0.2) + l1(x_apart, target, mask, weight=0.8)).backward()
+    assert torch.equal(x.grad, x_apart.grad)
+    y = target.clone().requires_grad_(True)  # a target with gradient: the fallback
+    fallback = ssim_l1(image, y, mask, ssim_weight=-0.2, l1_weight=0.8)
+    assert fallback.grad_fn is not None
+    expected = -0.2 * ssim(image, target, mask).item() + 0.8 * l1(image, target, mask).item()
+    assert fallback.item() == pytest.approx(expected, rel=1e-12)

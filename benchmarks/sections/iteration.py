@@ -26,7 +26,7 @@ from sections.common import ms, one_torch_thread, save, table
 from sections.scene import paper_scene
 from timing import median_wall_cpu_ms, wall_cpu_samples
 from urhead import hugepages
-from urhead.losses import l1, ssim
+from urhead.losses import ssim_l1
 from urhead.ops import TextureGather, texture
 from urhead.train.guard import WINDOW
 
@@ -110,8 +110,8 @@ def stage_functions(trainer, state):
 
     def loss_stage():
         x = _leaf(image)
-        # weighted inside the kernels, as the trainer's objective
-        loss = l1(x, frame.image, weight=0.8) + ssim(x, frame.image, weight=-0.2) + 0.2
+        # weighted inside one kernel pass, as the trainer's objective
+        loss = ssim_l1(x, frame.image, ssim_weight=-0.2, l1_weight=0.8) + 0.2
         loss.backward()
 
     # A real iteration's lookups for the optimiser stage, which builds their gradient as

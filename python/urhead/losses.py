@@ -2,9 +2,10 @@
 averaged inside the head mask, so background pixels neither train nor score.
 
 Images are (H, W, C) float tensors in [0, 1]; masks are (H, W) in [0, 1] or bool.
-:func:`ssim` and :func:`l1` run the fused Rust kernels of :mod:`urhead.ops.ssim` for CPU
-float32/float64 images with a constant target and mask (the training loop's case) and fall
-back to the plain-torch references of :mod:`urhead.ops._reference` otherwise.
+:func:`ssim`, :func:`l1` and :func:`ssim_l1` run the fused Rust kernels of
+:mod:`urhead.ops.ssim` for CPU float32/float64 images with a constant target and mask (the
+training loop's case) and fall back to the plain-torch references of
+:mod:`urhead.ops._reference` otherwise.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from __future__ import annotations
 import torch
 
 from urhead.ops._reference import masked_mean, ssim_map
-from urhead.ops.ssim import masked_l1, masked_ssim
+from urhead.ops.ssim import masked_l1, masked_ssim, masked_ssim_l1
 
 
 def _kernel_applies(image, target, mask) -> bool:
@@ -45,6 +46,22 @@ def l1(image, target, mask=None, *, weight: float = 1.0) -> torch.Tensor:
         mask = None if mask is None else mask.contiguous()
         return masked_l1(image.contiguous(), target.contiguous(), mask, weight=weight)
     return weight * masked_mean((image[..., : target.shape[-1]] - target).abs(), mask)
+
+
+def ssim_l1(image, target, mask=None, *, ssim_weight: float, l1_weight: float) -> torch.Tensor:
+    """``ssim_weight · ssim(...) + l1_weight · l1(...)`` of the same images: one kernel pass
+    and one gradient where the kernels apply (:func:`~urhead.ops.masked_ssim_l1`), the two
+    references otherwise."""
+    if _kernel_applies(image, target, mask) and image.shape == target.shape:
+        mask = None if mask is None else mask.contiguous()
+        return masked_ssim_l1(
+            image.contiguous(),
+            target.contiguous(),
+            mask,
+            ssim_weight=ssim_weight,
+            l1_weight=l1_weight,
+        )
+    return ssim(image, target, mask, weight=ssim_weight) + l1(image, target, mask, weight=l1_weight)
 
 
 def psnr(image, target, mask=None) -> torch.Tensor:

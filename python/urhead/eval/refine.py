@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from urhead.losses import l1, ssim
+from urhead.losses import l1, ssim_l1
 from urhead.model.avatar import Avatar, FlameParams
 
 
@@ -135,10 +135,11 @@ def _adam_descent(avatar, camera, target, start, steps, settings, occlusion_awar
         optimizer.zero_grad(set_to_none=True)
         params = FlameParams(expr, pose, transl)
         image = avatar.render(params, camera, occlusion_aware=occlusion_aware).image
-        # (1 − λ)·L1 + λ·(1 − SSIM), the weights inside the kernels (as the fit's objective)
-        loss = l1(image, target, weight=1 - w)
+        # (1 − λ)·L1 + λ·(1 − SSIM), the weights inside one kernel pass (as the fit's objective)
         if w > 0:
-            loss = loss + ssim(image, target, weight=-w) + w
+            loss = ssim_l1(image, target, ssim_weight=-w, l1_weight=1 - w) + w
+        else:
+            loss = l1(image, target)
         value = float(loss.detach())
         losses.append(value)
         if value < best_loss and torch.isfinite(loss):

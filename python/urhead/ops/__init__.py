@@ -14,7 +14,7 @@ from urhead.ops.rotate import rotate_normalize
 from urhead.ops.sh_texture import half_maps, sh_texture
 from urhead.ops.shading import sh_shade
 from urhead.ops.splat import SplatOutput, normal_to_quat, rasterize_gaussians
-from urhead.ops.ssim import masked_l1, masked_ssim
+from urhead.ops.ssim import masked_l1, masked_ssim, masked_ssim_l1
 from urhead.ops.texture import TextureGather, texture
 from urhead.ops.uv_error import accumulate_uv_error, nearest_covered_pixel
 
@@ -36,6 +36,7 @@ __all__ = [
     "lift_gaussians_geometry",
     "masked_l1",
     "masked_ssim",
+    "masked_ssim_l1",
     "nearest_covered_pixel",
     "normal_to_quat",
     "rasterize",

@@ -1,5 +1,5 @@
 """Mean SSIM (a similarity) and mean L1 (a loss) of two images inside a mask, with Rust
-kernels (the training loop's loss stage).
+kernels (the training loop's loss stage), apart or weighted together in one pass.
 
 Both kernels compute the value and, when ``image`` requires grad, its gradient in the same
 call (the SSIM gradient reuses the forward's blurred moments while they are in cache). A
@@ -25,8 +25,11 @@ _NUMPY_DTYPES = {torch.float32: np.float32, torch.float64: np.float64}
 
 
 class _MaskedImageComparison(torch.autograd.Function):
+    """``Σ_k weights[k] · metric_k(image, target)`` for ``metric`` "ssim", "l1" or
+    "ssim+l1" (both from one kernel pass, one gradient)."""
+
     @staticmethod
-    def forward(ctx, metric, image, target, mask, weight):
+    def forward(ctx, metric, image, target, mask, weights):
         dtype = image.dtype
         args = (
             to_numpy("image", image, dtype),
@@ -34,12 +37,16 @@ class _MaskedImageComparison(torch.autograd.Function):
             None if mask is None else to_numpy("mask", mask, dtype),
         )
         ctx.set_materialize_grads(False)
-        if ctx.needs_input_grad[1]:
-            value, grad = native("masked_mean_grad")(metric, *args, weight, num_threads())
-            ctx.save_for_backward(torch.from_numpy(grad))
+        if not ctx.needs_input_grad[1]:
+            values = [native("masked_mean")(m, *args, num_threads()) for m in metric.split("+")]
+        elif metric == "ssim+l1":
+            *values, grad = native("masked_ssim_l1_grad")(*args, *weights, num_threads())
         else:
-            value = native("masked_mean")(metric, *args, num_threads())
-        return torch.tensor(weight * value, dtype=dtype)
+            value, grad = native("masked_mean_grad")(metric, *args, *weights, num_threads())
+            values = [value]
+        if ctx.needs_input_grad[1]:
+            ctx.save_for_backward(torch.from_numpy(grad))
+        return torch.tensor(sum(w * v for w, v in zip(weights, values, strict=True)), dtype=dtype)
 
     @staticmethod
     @once_differentiable
@@ -55,14 +62,16 @@ class _MaskedImageComparison(torch.autograd.Function):
         return None, torch.from_numpy(scaled), None, None, None
 
 
-def _apply(metric: str, image, target, mask, weight) -> torch.Tensor:
+def _apply(metric: str, image, target, mask, weights: dict[str, float]) -> torch.Tensor:
+    """``weights``: each metric's weight by its argument's name, in ``metric``'s order."""
     dtype = float_dtype("image", image)
-    if (
-        isinstance(weight, bool)
-        or not isinstance(weight, (int, float))
-        or not math.isfinite(weight)
-    ):
-        raise InvalidArgumentError(f"weight must be a finite number, got {weight!r}")
+    for name, weight in weights.items():
+        if (
+            isinstance(weight, bool)
+            or not isinstance(weight, (int, float))
+            or not math.isfinite(weight)
+        ):
+            raise InvalidArgumentError(f"{name} must be a finite number, got {weight!r}")
     for arg, t in (("target", target), ("mask", mask)):
         if t is not None and isinstance(t, torch.Tensor) and t.requires_grad:
             raise InvalidArgumentError(
@@ -74,7 +83,9 @@ def _apply(metric: str, image, target, mask, weight) -> torch.Tensor:
         if mask.dtype != dtype and mask.dtype in (torch.bool, torch.float32, torch.float64):
             # (H, W) is small next to the images; numpy converts without thread start-up
             mask = torch.from_numpy(mask.detach().numpy().astype(_NUMPY_DTYPES[dtype]))
-    return _MaskedImageComparison.apply(metric, image, target, mask, float(weight))
+    return _MaskedImageComparison.apply(
+        metric, image, target, mask, tuple(float(w) for w in weights.values())
+    )
 
 
 def masked_ssim(
@@ -101,7 +112,7 @@ def masked_ssim(
     Returns:
         A 0-dim tensor of ``image``'s dtype. An all-zero mask gives 0 with zero gradient.
     """
-    return _apply("ssim", image, target, mask, weight)
+    return _apply("ssim", image, target, mask, {"weight": weight})
 
 
 def masked_l1(
@@ -117,4 +128,23 @@ def masked_l1(
     but ``image`` may be (H, W, S) with S ≥ C, the target's channels: its first C are
     compared where they lie (a mesh's RGBA against an RGB frame, with no copy of its colour
     and no scatter of the gradient back into the RGBA); its gradient is zero past them."""
-    return _apply("l1", image, target, mask, weight)
+    return _apply("l1", image, target, mask, {"weight": weight})
+
+
+def masked_ssim_l1(
+    image: torch.Tensor,
+    target: torch.Tensor,
+    mask: torch.Tensor | None = None,
+    *,
+    ssim_weight: float,
+    l1_weight: float,
+) -> torch.Tensor:
+    """``ssim_weight · masked_ssim(...) + l1_weight · masked_l1(...)`` of the same images
+    in one pass (the 3DGS photometric loss is ``λ + masked_ssim_l1(..., ssim_weight=-λ,
+    l1_weight=1 - λ)``): the L1 rides in the SSIM gradient's pass, which reads both images
+    anyway, and the two gradients come back as one. Each term's value and the summed
+    gradient are bit for bit those of the two ops apart. Arguments as :func:`masked_ssim`
+    (``image`` and ``target`` of the same channels)."""
+    return _apply(
+        "ssim+l1", image, target, mask, {"ssim_weight": ssim_weight, "l1_weight": l1_weight}
+    )

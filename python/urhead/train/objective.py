@@ -22,7 +22,7 @@ import scipy.sparse as sp
 import torch
 
 from urhead.head.mesh import uniform_laplacian
-from urhead.losses import l1, ssim
+from urhead.losses import l1, ssim_l1
 from urhead.model.avatar import Render
 
 OFFSET_UNIT = 0.1
@@ -64,14 +64,15 @@ class Objective:
         # (1 − λ)·photo + λ·(1 − SSIM), each term weighted inside its kernel, so the summed
         # loss hands every kernel's gradient back unscaled (no pass over an image to scale it).
         photo_weight = 1 - self.lambda_ssim
-        if render.gaussians is not None and self.mesh_term > 0:
-            total = l1(image, target, weight=photo_weight * (1 - self.mesh_term))
-            # the mesh's colour read in place from its RGBA
-            total = total + l1(render.mesh.rgba, target, weight=photo_weight * self.mesh_term)
+        with_mesh_term = render.gaussians is not None and self.mesh_term > 0
+        image_weight = photo_weight * (1 - self.mesh_term) if with_mesh_term else photo_weight
+        if self.lambda_ssim > 0:  # the image's L1 and SSIM in one kernel pass
+            total = ssim_l1(image, target, ssim_weight=-self.lambda_ssim, l1_weight=image_weight)
+            total = total + self.lambda_ssim
         else:
-            total = l1(image, target, weight=photo_weight)
-        if self.lambda_ssim > 0:
-            total = total + ssim(image, target, weight=-self.lambda_ssim) + self.lambda_ssim
+            total = l1(image, target, weight=image_weight)
+        if with_mesh_term:  # the mesh's colour read in place from its RGBA
+            total = total + l1(render.mesh.rgba, target, weight=photo_weight * self.mesh_term)
         if self.use_normals and self.lambda_normal > 0:
             normal = normal_loss(render, frame)
             total = total + self.lambda_normal * normal

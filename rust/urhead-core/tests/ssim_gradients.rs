@@ -3,7 +3,8 @@
 
 use urhead_core::error::Error;
 use urhead_core::ssim::{
-    masked_l1, masked_l1_with_grad, masked_ssim, masked_ssim_with_grad, SsimInputs, C1, C2, SIGMA, WINDOW,
+    masked_l1, masked_l1_with_grad, masked_ssim, masked_ssim_l1_with_grad, masked_ssim_with_grad, SsimInputs, C1,
+    C2, SIGMA, WINDOW,
 };
 use urhead_core::testing::{on_threads, Rng};
 
@@ -307,4 +308,82 @@ fn a_weight_scales_the_gradient_only() {
             }
         }
     }
+}
+
+/// SSIM and L1 in one pass: each value and the gradient bit for bit those of the two
+/// kernels apart (the gradient their sum), with a mask or without, an all-zero mask, f32
+/// and f64 (the f32 case also across thread counts, on an image taller than one band).
+#[test]
+fn ssim_and_l1_in_one_pass_are_the_two_kernels_apart() {
+    fn check<T: urhead_core::Real>(inputs: &SsimInputs<'_, T>, label: &str) {
+        for (ssim_weight, l1_weight) in [(-0.2, 0.64), (1.0, 1.0), (0.0, -3.0), (0.5, 0.0)] {
+            let (ssim, l1, grad) = masked_ssim_l1_with_grad(inputs, ssim_weight, l1_weight).unwrap();
+            let (ssim_alone, ssim_grad) = masked_ssim_with_grad(inputs, ssim_weight).unwrap();
+            let (l1_alone, l1_grad) = masked_l1_with_grad(inputs, l1_weight).unwrap();
+            assert_eq!(ssim.to_f64().unwrap().to_bits(), ssim_alone.to_f64().unwrap().to_bits(), "{label}");
+            assert_eq!(l1.to_f64().unwrap().to_bits(), l1_alone.to_f64().unwrap().to_bits(), "{label}");
+            for (k, g) in grad.iter().enumerate() {
+                let sum = ssim_grad[k] + l1_grad[k];
+                assert_eq!(g.to_f64().unwrap().to_bits(), sum.to_f64().unwrap().to_bits(), "{label} at {k}");
+            }
+        }
+    }
+    for (i, case) in cases().into_iter().enumerate() {
+        let mut x = case.x.clone();
+        x[0] = case.y[0]; // a zero difference: the L1's subgradient 0
+        check(&case.inputs(&x), &format!("case {i}"));
+    }
+    let mut zero_mask = Case::new(9, 8, 3, 71);
+    zero_mask.mask = Some(vec![0.0; 72]);
+    check(&zero_mask.inputs(&zero_mask.x), "all-zero mask");
+    let (value_ssim, value_l1, grad) = masked_ssim_l1_with_grad(&zero_mask.inputs(&zero_mask.x), 1.0, 1.0).unwrap();
+    assert_eq!((value_ssim, value_l1), (0.0, 0.0));
+    assert!(grad.iter().all(|g| *g == 0.0));
+
+    let mut rng = Rng::new(72);
+    let (h, w, c) = (301, 23, 3);
+    let y: Vec<f32> = rng.vec(h * w * c, 0.0, 1.0);
+    let x: Vec<f32> = rng.vec(h * w * c, 0.0, 1.0);
+    let mask: Vec<f32> = rng.vec(h * w, 0.0, 1.0);
+    let inputs = SsimInputs {
+        image: &x,
+        target: &y,
+        mask: Some(&mask),
+        height: h,
+        width: w,
+        channels: c,
+        image_channels: c,
+    };
+    check(&inputs, "f32");
+    let run = |threads: usize| on_threads(threads, || masked_ssim_l1_with_grad(&inputs, -0.2, 0.64).unwrap());
+    let (s1, l1, g1) = run(1);
+    for threads in [2, 3] {
+        let (s, l, g) = run(threads);
+        assert_eq!((s.to_bits(), l.to_bits()), (s1.to_bits(), l1.to_bits()));
+        assert!(g.iter().zip(&g1).all(|(a, b)| a.to_bits() == b.to_bits()));
+    }
+}
+
+/// The one-pass SSIM + L1 refuses what either kernel refuses: non-finite weights, an image
+/// wider than the target (SSIM compares whole images).
+#[test]
+fn ssim_and_l1_in_one_pass_refuse_bad_inputs() {
+    let case = Case::new(6, 5, 3, 73);
+    let inputs = case.inputs(&case.x);
+    for (ssim_weight, l1_weight) in [(f64::NAN, 1.0), (1.0, f64::INFINITY), (1.0, f64::NAN)] {
+        assert!(matches!(
+            masked_ssim_l1_with_grad(&inputs, ssim_weight, l1_weight),
+            Err(Error::Invalid { arg: "weight", .. })
+        ));
+    }
+    let wide: Vec<f64> = vec![0.5; 6 * 5 * 4];
+    let wider = SsimInputs {
+        image: &wide,
+        image_channels: 4,
+        ..inputs
+    };
+    assert!(matches!(
+        masked_ssim_l1_with_grad(&wider, 1.0, 1.0),
+        Err(Error::Shape { arg: "image", .. })
+    ));
 }

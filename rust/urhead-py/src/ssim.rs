@@ -1,6 +1,6 @@
 //! Binding of `urhead_core::ssim`: masked SSIM and L1 of `(H, W, C)` images, chosen by
-//! name, as a value-only entry point and a value-with-gradient one, each serving float32
-//! and float64.
+//! name, as a value-only entry point and a value-with-gradient one, and the two together
+//! with one gradient; each serving float32 and float64.
 
 use numpy::{Element, PyReadonlyArrayDyn};
 use pyo3::prelude::*;
@@ -152,9 +152,58 @@ pub fn masked_mean_grad<'py>(
     ))
 }
 
+/// Masked mean SSIM and L1 of (H, W, C) images, and the (H, W, C) gradient of
+/// `ssim_weight · SSIM + l1_weight · L1` in `image`, in one pass: `(ssim, l1, grad)`.
+#[pyfunction]
+#[allow(clippy::too_many_arguments)]
+pub fn masked_ssim_l1_grad<'py>(
+    py: Python<'py>,
+    image: &Bound<'py, PyAny>,
+    target: &Bound<'py, PyAny>,
+    mask: Option<&Bound<'py, PyAny>>,
+    ssim_weight: f64,
+    l1_weight: f64,
+    num_threads: usize,
+) -> PyResult<(f64, f64, Bound<'py, PyAny>)> {
+    with_float_type!(image, T => ssim_l1_and_grad::<T>(
+        py,
+        image.extract()?,
+        target.extract()?,
+        optional_array(mask)?,
+        (ssim_weight, l1_weight),
+        num_threads,
+    ))
+}
+
+#[allow(clippy::type_complexity)]
+fn ssim_l1_and_grad<'py, T: Element + Real>(
+    py: Python<'py>,
+    image: Arr<'py, T>,
+    target: Arr<'py, T>,
+    mask: Option<Arr<'py, T>>,
+    (ssim_weight, l1_weight): (f64, f64),
+    num_threads: usize,
+) -> PyResult<(f64, f64, Bound<'py, PyAny>)> {
+    let inputs = inputs("ssim", &image, &target, mask.as_ref())?;
+    let (ssim, l1, grad) = py
+        .allow_threads(|| {
+            with_threads(num_threads, || {
+                ssim::masked_ssim_l1_with_grad(&inputs, ssim_weight, l1_weight)
+            })
+        })
+        .map_err(py_err)?;
+    let dims = [inputs.height, inputs.width, inputs.channels];
+    Ok((
+        ssim.to_f64().unwrap_or(f64::NAN),
+        l1.to_f64().unwrap_or(f64::NAN),
+        array(py, grad, &dims)?.into_any(),
+    ))
+}
+
 /// Adds the entry points to `_core`.
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(masked_mean, m)?)?;
     m.add_function(wrap_pyfunction!(masked_mean_grad, m)?)?;
+    m.add_function(wrap_pyfunction!(masked_ssim_l1_grad, m)?)?;
     Ok(())
 }

@@ -14,6 +14,7 @@ use rayon::prelude::*;
 
 use super::blur::{PaddedRows, RowRing};
 use super::forward::{expand_mask_row, MomentStream, MOMENTS};
+use super::l1::{add_slope_row, row_sum};
 use super::{bands, check_weight, gaussian_window, PixelTerms, SsimInputs, BAND_ROWS, WINDOW};
 use crate::error::Result;
 use crate::memory::zeroed;
@@ -42,28 +43,65 @@ fn pixel_adjoint<T: Real>(p: &PixelTerms<T>, g: T) -> (T, T, T, T) {
 /// the target and mask are constants. One fused pass; the weight (a loss term's) joins the
 /// mean's normalisation in the per-pixel scale, so no pass over the gradient scales it.
 pub fn masked_ssim_with_grad<T: Real>(inputs: &SsimInputs<'_, T>, weight: f64) -> Result<(T, Vec<T>)> {
-    check_weight(weight)?;
-    let norm = inputs.validate_same_channels()?.max(1.0);
-    let (h, len) = (inputs.height, inputs.width * inputs.channels);
-    let scale = T::c(weight / (norm * inputs.channels as f64));
-    let mut grad = zeroed("SSIM gradient (H, W, C)", h * len)?;
-    let partials: Vec<f64> = grad
-        .par_chunks_mut(BAND_ROWS * len)
-        .zip(bands(h))
-        .map(|(grad_band, (start, end))| band_with_grad(inputs, start, end, scale, grad_band))
-        .collect();
-    let total: f64 = partials.iter().sum();
-    Ok((T::c(total / (norm * inputs.channels as f64)), grad))
+    let (ssim, _, grad) = ssim_and_l1_with_grad(inputs, weight, None)?;
+    Ok((ssim, grad))
 }
 
-/// One band of rows `[start, end)`: returns its Σ m·SSIM and writes its gradient rows.
+/// Masked mean SSIM and masked L1 ([`super::masked_l1`]) of the same images, and the
+/// gradient of `ssim_weight · SSIM + l1_weight · L1` with respect to `image`: the 3DGS
+/// photometric loss in the SSIM gradient's pass, which reads both images anyway — no pass
+/// of the L1's own and no second gradient image to add. Returns `(SSIM, L1, gradient)`,
+/// each value and the gradient bit for bit those of the two kernels apart (the gradient
+/// the sum of theirs).
+pub fn masked_ssim_l1_with_grad<T: Real>(
+    inputs: &SsimInputs<'_, T>,
+    ssim_weight: f64,
+    l1_weight: f64,
+) -> Result<(T, T, Vec<T>)> {
+    check_weight(l1_weight)?;
+    ssim_and_l1_with_grad(inputs, ssim_weight, Some(l1_weight))
+}
+
+/// SSIM with its gradient, and the L1 term's value and gradient folded in when
+/// `l1_weight` is given (the L1's value is 0 otherwise).
+fn ssim_and_l1_with_grad<T: Real>(
+    inputs: &SsimInputs<'_, T>,
+    weight: f64,
+    l1_weight: Option<f64>,
+) -> Result<(T, T, Vec<T>)> {
+    check_weight(weight)?;
+    let mask_sum = inputs.validate_same_channels()?;
+    let channels = inputs.channels as f64;
+    let norm = mask_sum.max(1.0);
+    let l1_denominator = (mask_sum * channels).max(1.0); // as masked_l1's
+    let (h, len) = (inputs.height, inputs.width * inputs.channels);
+    let scale = T::c(weight / (norm * channels));
+    let l1_scale = l1_weight.map(|w| T::c(w / l1_denominator));
+    let mut grad = zeroed("SSIM gradient (H, W, C)", h * len)?;
+    let partials: Vec<(f64, f64)> = grad
+        .par_chunks_mut(BAND_ROWS * len)
+        .zip(bands(h))
+        .map(|(grad_band, (start, end))| band_with_grad(inputs, start, end, scale, l1_scale, grad_band))
+        .collect();
+    let ssim: f64 = partials.iter().map(|p| p.0).sum();
+    let l1: f64 = partials.iter().map(|p| p.1).sum();
+    Ok((
+        T::c(ssim / (norm * channels)),
+        T::c(l1 / l1_denominator),
+        grad,
+    ))
+}
+
+/// One band of rows `[start, end)`: returns its Σ m·SSIM and Σ m·|x − y| (0 without
+/// `l1_scale`) and writes its gradient rows (with the L1's subgradient at `l1_scale`).
 fn band_with_grad<T: Real>(
     inputs: &SsimInputs<'_, T>,
     start: usize,
     end: usize,
     scale: T,
+    l1_scale: Option<T>,
     grad: &mut [T],
-) -> f64 {
+) -> (f64, f64) {
     let (h, len) = (inputs.height, inputs.width * inputs.channels);
     let half = WINDOW / 2;
     let weights_1d: [T; WINDOW] = gaussian_window();
@@ -74,8 +112,9 @@ fn band_with_grad<T: Real>(
     let mut ring = RowRing::new(h, COEFFICIENTS * len);
     let mut blurred = vec![T::zero(); COEFFICIENTS * len];
     let (mut mask, mut ssim) = (vec![T::zero(); len], vec![T::zero(); len]);
+    let mut output_mask = vec![T::zero(); if l1_scale.is_some() { len } else { 0 }];
     let mut next_output = start;
-    let mut total = 0.0;
+    let (mut total, mut l1_total) = (0.0, 0.0);
     for row in first..last {
         let m = moments.row(row);
         expand_mask_row(inputs, row, &mut mask);
@@ -103,9 +142,14 @@ fn band_with_grad<T: Real>(
             for t in 0..len {
                 out[t] = x[t].mul_add(gb[t], y[t].mul_add(gc[t], ga[t]));
             }
+            if let Some(l1_scale) = l1_scale {
+                expand_mask_row(inputs, r, &mut output_mask);
+                l1_total += row_sum(x, y, &output_mask);
+                add_slope_row(x, y, &output_mask, l1_scale, out);
+            }
             next_output += 1;
         }
     }
     debug_assert_eq!(next_output, end);
-    total
+    (total, l1_total)
 }

@@ -77,15 +77,29 @@ fn slope_row<T: Real>(x: &[T], y: &[T], mask: &[T], scale: T, out: &mut [T]) {
     let n = out.len();
     let (x, y, mask) = (&x[..n], &y[..n], &mask[..n]);
     for t in 0..n {
-        let d = x[t] - y[t];
-        let sign = if d > T::zero() {
-            T::one()
-        } else if d < T::zero() {
-            -T::one()
-        } else {
-            T::zero()
-        };
-        out[t] = mask[t] * scale * sign;
+        out[t] = mask[t] * scale * sign(x[t] - y[t]);
+    }
+}
+
+/// `out[t] += mask[t]·scale·sign(x[t] − y[t])`: [`slope_row`]'s values added to another
+/// term's gradient (the SSIM's), each the same bits as apart.
+pub(super) fn add_slope_row<T: Real>(x: &[T], y: &[T], mask: &[T], scale: T, out: &mut [T]) {
+    let n = out.len();
+    let (x, y, mask) = (&x[..n], &y[..n], &mask[..n]);
+    for t in 0..n {
+        out[t] += mask[t] * scale * sign(x[t] - y[t]);
+    }
+}
+
+/// sign(d) with sign(0) = 0 (and NaN → 0).
+#[inline(always)]
+fn sign<T: Real>(d: T) -> T {
+    if d > T::zero() {
+        T::one()
+    } else if d < T::zero() {
+        -T::one()
+    } else {
+        T::zero()
     }
 }
 
@@ -133,7 +147,7 @@ fn copy_pixels<T: Copy>(dst: &mut [T], dst_stride: usize, src: &[T], src_stride:
 }
 
 /// `Σ_t mask[t]·|x[t] − y[t]|` of one row, accumulated in T then returned as f64.
-fn row_sum<T: Real>(x: &[T], y: &[T], mask: &[T]) -> f64 {
+pub(super) fn row_sum<T: Real>(x: &[T], y: &[T], mask: &[T]) -> f64 {
     let mut acc = [T::zero(); 16];
     let (cx, cy, cm) = (x.chunks_exact(16), y.chunks_exact(16), mask.chunks_exact(16));
     let tail: T = (cx.remainder().iter().zip(cy.remainder()).zip(cm.remainder()))
