@@ -19,9 +19,10 @@ from urhead.cli import main
 from urhead.data import load_subject
 from urhead.eval import RefineSettings, evaluate_frames
 from urhead.eval.lpips import VARIANTS, load_lpips
+from urhead.eval.metrics import frame_params
 from urhead.model import load_avatar
 from urhead.model.avatar import POSE_SIZE
-from urhead.use.common import avatar_camera, open_avatar
+from urhead.use.common import avatar_camera, bgr_uint8, open_avatar
 from urhead.use.orbit import camera_up, default_orbit_angles, head_yaws
 from urhead.use.panels import label_bar_height
 from urhead.use.reenact import driven_params, load_driver
@@ -178,6 +179,13 @@ def test_render_frames_and_orbit(use, tmp_path):
     assert rows[0][:bar].min() < 128 and rows[0][:bar].max() == 255  # black labels on white
     for png, decoded in zip(rows, video, strict=True):  # the video is the frames
         assert luma_psnr(png, decoded) > 30  # observed 33.8–35.3 dB
+    # Rendered a few at a time, every frame is the avatar as rendered alone.
+    opened = open_avatar(use.avatar_dir)
+    with torch.no_grad():
+        for frame, row in zip(subject.test, rows, strict=True):
+            params = frame_params(opened.avatar, frame)
+            image = opened.avatar.render(params, frame.camera).image.clamp(0, 1)
+            assert np.array_equal(row[bar:, 64:128], bgr_uint8(image))
 
     assert (
         main(

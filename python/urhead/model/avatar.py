@@ -123,17 +123,18 @@ class Render(NamedTuple):
 class PixelRays:
     """(H·W, 3) float32 unit directions of a camera's pixel rays (from the camera centre
     through each pixel centre) in the camera's axes, kept for the last camera asked for: a
-    fit renders the same camera over and over."""
+    fit renders the same camera over and over. Safe for frames rendered on several
+    threads at once: the camera and its rays are kept as one pair, read and replaced whole."""
 
     def __init__(self):
-        self._key: str | None = None
-        self._rays: torch.Tensor | None = None
+        self._kept: tuple[str, torch.Tensor] | None = None
 
     def __call__(self, camera: Camera) -> torch.Tensor:
         key = repr(camera.core_args())
-        if key != self._key:
-            self._rays, self._key = _pixel_rays(camera), key
-        return self._rays
+        kept = self._kept
+        if kept is None or kept[0] != key:
+            kept = self._kept = (key, _pixel_rays(camera))
+        return kept[1]
 
 
 def _pixel_rays(camera: Camera) -> torch.Tensor:

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from urhead._in_flight import in_flight
 from urhead._progress import tracked
 from urhead.errors import InvalidArgumentError, ShapeError, reading
 from urhead.model.avatar import POSE_SIZE, FlameParams
@@ -74,12 +75,12 @@ def run(args: argparse.Namespace) -> int:
     camera = avatar_camera(opened, subject)
     params = driven_params(avatar, driver)
 
-    def images():
-        for p in tracked(params, len(params), "reenact"):
-            yield bgr_uint8(avatar.render(p, camera, occlusion_aware=opened.occlusion_aware).image)
+    def image(p) -> np.ndarray:
+        return bgr_uint8(avatar.render(p, camera, occlusion_aware=opened.occlusion_aware).image)
 
     with torch.no_grad():
-        count = write_mp4(out, images(), args.fps)
+        images = tracked(in_flight(image, params), len(params), "reenact")
+        count = write_mp4(out, images, args.fps)
     print(f"wrote {count} frames to {out}")
     return 0
 

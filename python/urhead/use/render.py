@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from urhead._atomic import write_directory_atomically
+from urhead._in_flight import in_flight
 from urhead._progress import tracked
 from urhead.data.images import write_bgr_png
 from urhead.eval.metrics import frame_params
@@ -92,13 +93,13 @@ def _render_frames(opened, args: argparse.Namespace) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
 
     def fill(folder: Path):
-        def images():
-            for frame in tracked(frames, len(frames), "render"):
-                row = side_by_side(avatar, frame, occlusion, args.error_scale)
-                write_bgr_png(folder / f"{frame.timestep:05d}.png", row)
-                yield row
+        def row(frame) -> np.ndarray:
+            row = side_by_side(avatar, frame, occlusion, args.error_scale)
+            write_bgr_png(folder / f"{frame.timestep:05d}.png", row)
+            return row
 
-        write_mp4(args.out / "render.mp4", images(), args.fps)
+        rows = tracked(in_flight(row, frames), len(frames), "render")
+        write_mp4(args.out / "render.mp4", rows, args.fps)
 
     with torch.no_grad():
         write_directory_atomically(args.out / "frames", fill)
@@ -124,19 +125,20 @@ def _render_orbit(opened, args: argparse.Namespace) -> int:
     name = f"orbit_{args.orbit:05d}"
 
     def fill_orbit(folder: Path):
-        def images():
-            views = enumerate(zip(cameras, angles, strict=True))
-            for i, (cam, angle) in tracked(views, len(cameras), "orbit", unit="view"):
-                out = avatar.render(params, cam, occlusion_aware=occlusion)
-                turn = f"{np.degrees(angle):+.0f} deg"
-                row = labelled_row(
-                    [bgr_uint8(out.image), bgr_uint8(out.mesh.image)],
-                    [f"avatar {turn}", "mesh branch"],
-                )
-                write_bgr_png(folder / f"{i:03d}.png", row)
-                yield row
+        def view(indexed) -> np.ndarray:
+            i, (cam, angle) = indexed
+            out = avatar.render(params, cam, occlusion_aware=occlusion)
+            turn = f"{np.degrees(angle):+.0f} deg"
+            row = labelled_row(
+                [bgr_uint8(out.image), bgr_uint8(out.mesh.image)],
+                [f"avatar {turn}", "mesh branch"],
+            )
+            write_bgr_png(folder / f"{i:03d}.png", row)
+            return row
 
-        write_mp4(args.out / f"{name}.mp4", images(), args.fps)
+        views = enumerate(zip(cameras, angles, strict=True))
+        rows = tracked(in_flight(view, views), len(cameras), "orbit", unit="view")
+        write_mp4(args.out / f"{name}.mp4", rows, args.fps)
 
     with torch.no_grad():
         write_directory_atomically(args.out / name, fill_orbit)
