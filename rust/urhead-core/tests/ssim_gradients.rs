@@ -3,8 +3,8 @@
 
 use urhead_core::error::Error;
 use urhead_core::ssim::{
-    masked_l1, masked_l1_with_grad, masked_ssim, masked_ssim_l1_with_grad, masked_ssim_with_grad, SsimInputs, C1,
-    C2, SIGMA, WINDOW,
+    masked_l1, masked_l1_with_grad, masked_ssim, masked_ssim_l1_with_grad, masked_ssim_with_grad, SsimInputs,
+    C1, C2, SIGMA, WINDOW,
 };
 use urhead_core::testing::{on_threads, Rng};
 
@@ -320,11 +320,23 @@ fn ssim_and_l1_in_one_pass_are_the_two_kernels_apart() {
             let (ssim, l1, grad) = masked_ssim_l1_with_grad(inputs, ssim_weight, l1_weight).unwrap();
             let (ssim_alone, ssim_grad) = masked_ssim_with_grad(inputs, ssim_weight).unwrap();
             let (l1_alone, l1_grad) = masked_l1_with_grad(inputs, l1_weight).unwrap();
-            assert_eq!(ssim.to_f64().unwrap().to_bits(), ssim_alone.to_f64().unwrap().to_bits(), "{label}");
-            assert_eq!(l1.to_f64().unwrap().to_bits(), l1_alone.to_f64().unwrap().to_bits(), "{label}");
+            assert_eq!(
+                ssim.to_f64().unwrap().to_bits(),
+                ssim_alone.to_f64().unwrap().to_bits(),
+                "{label}"
+            );
+            assert_eq!(
+                l1.to_f64().unwrap().to_bits(),
+                l1_alone.to_f64().unwrap().to_bits(),
+                "{label}"
+            );
             for (k, g) in grad.iter().enumerate() {
                 let sum = ssim_grad[k] + l1_grad[k];
-                assert_eq!(g.to_f64().unwrap().to_bits(), sum.to_f64().unwrap().to_bits(), "{label} at {k}");
+                assert_eq!(
+                    g.to_f64().unwrap().to_bits(),
+                    sum.to_f64().unwrap().to_bits(),
+                    "{label} at {k}"
+                );
             }
         }
     }
@@ -336,7 +348,8 @@ fn ssim_and_l1_in_one_pass_are_the_two_kernels_apart() {
     let mut zero_mask = Case::new(9, 8, 3, 71);
     zero_mask.mask = Some(vec![0.0; 72]);
     check(&zero_mask.inputs(&zero_mask.x), "all-zero mask");
-    let (value_ssim, value_l1, grad) = masked_ssim_l1_with_grad(&zero_mask.inputs(&zero_mask.x), 1.0, 1.0).unwrap();
+    let (value_ssim, value_l1, grad) =
+        masked_ssim_l1_with_grad(&zero_mask.inputs(&zero_mask.x), 1.0, 1.0).unwrap();
     assert_eq!((value_ssim, value_l1), (0.0, 0.0));
     assert!(grad.iter().all(|g| *g == 0.0));
 

@@ -85,11 +85,7 @@ fn ssim_and_l1_with_grad<T: Real>(
         .collect();
     let ssim: f64 = partials.iter().map(|p| p.0).sum();
     let l1: f64 = partials.iter().map(|p| p.1).sum();
-    Ok((
-        T::c(ssim / (norm * channels)),
-        T::c(l1 / l1_denominator),
-        grad,
-    ))
+    Ok((T::c(ssim / (norm * channels)), T::c(l1 / l1_denominator), grad))
 }
 
 /// One band of rows `[start, end)`: returns its Σ m·SSIM and Σ m·|x − y| (0 without
