@@ -2,6 +2,7 @@
 //! intrinsics in pixels, a world→camera matrix, pixel centres at (x + 0.5, y + 0.5).
 
 use crate::error::{Error, Result};
+use crate::mat3::map3;
 
 /// A validated pinhole camera. Construct with [`Camera::new`].
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -92,7 +93,7 @@ impl Camera {
     #[inline]
     pub fn to_camera(&self, p: [f32; 3]) -> [f32; 3] {
         let m = &self.viewmat;
-        [0, 1, 2].map(|r| m[r][0] * p[0] + m[r][1] * p[1] + m[r][2] * p[2] + m[r][3])
+        map3(|r| m[r][0] * p[0] + m[r][1] * p[1] + m[r][2] * p[2] + m[r][3])
     }
 
     /// Camera-space point → pixel coordinates (pixel centres at +0.5).

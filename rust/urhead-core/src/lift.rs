@@ -21,7 +21,7 @@
 use rayon::prelude::*;
 
 use crate::error::{check_finite, check_indices, check_len, checked_size, Error, Result};
-use crate::mat3::{dot, matvec, matvec_t, M3, V3};
+use crate::mat3::{dot, map3, matvec, matvec_t, M3, V3};
 use crate::memory::zeroed;
 use crate::rotate::{normalise, normalise_backward};
 use crate::Real;
@@ -143,7 +143,7 @@ impl<T: Real> LiftInputs<'_, T> {
 
     #[inline(always)]
     fn corners(&self, i: usize) -> [usize; 3] {
-        [0, 1, 2].map(|k| self.face_verts[3 * i + k] as usize)
+        map3(|k| self.face_verts[3 * i + k] as usize)
     }
 
     #[inline(always)]
@@ -168,7 +168,7 @@ impl<T: Real> LiftInputs<'_, T> {
     fn surface(&self, i: usize) -> V3<T> {
         let (f, b) = (self.corners(i), self.weights(i));
         let v = |k: usize, c: usize| self.verts[3 * f[k] + c];
-        [0, 1, 2].map(|c| b[0] * v(0, c) + b[1] * v(1, c) + b[2] * v(2, c))
+        map3(|c| b[0] * v(0, c) + b[1] * v(1, c) + b[2] * v(2, c))
     }
 
     #[inline(always)]
@@ -281,7 +281,7 @@ impl<T: Real> Quat<T> {
             [v_q[3] / s, -v_q[0] / s, -v_q[1] / s + along]
         };
         let proj = dot(&self.u, &v_u);
-        [0, 1, 2].map(|c| (v_u[c] - self.u[c] * proj) / self.len / self.peak)
+        map3(|c| (v_u[c] - self.u[c] * proj) / self.len / self.peak)
     }
 }
 
@@ -309,8 +309,8 @@ pub fn lift_forward<T: Real>(inputs: &LiftInputs<'_, T>) -> Result<Lifted<T>> {
                 let p = inputs.posed(i);
                 let surface = inputs.surface(i);
                 let lift = inputs.lift[i];
-                let mean = [0, 1, 2].map(|k| surface[k] + lift * p.normal[k]);
-                let (ray, _) = normalise([0, 1, 2].map(|k| mean[k] - centre[k]));
+                let mean = map3(|k| surface[k] + lift * p.normal[k]);
+                let (ray, _) = normalise(map3(|k| mean[k] - centre[k]));
                 let (local, _) = normalise(matvec_t(&p.frame, &ray));
                 means[3 * j..3 * j + 3].copy_from_slice(&mean);
                 normals[3 * j..3 * j + 3].copy_from_slice(&p.normal);
@@ -395,7 +395,7 @@ pub fn lift_backward<T: Real>(
                 }
                 let lift = inputs.lift[i];
                 let from_quat = p.quat.backward(&v_q);
-                let v_normal = [0, 1, 2].map(|k| lift * v_mean[k] + v_out[k] + from_quat[k]);
+                let v_normal = map3(|k| lift * v_mean[k] + v_out[k] + from_quat[k]);
                 if v_normal.iter().all(|&g| g == zero) {
                     continue;
                 }
@@ -638,7 +638,7 @@ mod tests {
                     }
                 }
             }
-            let m = matvec(&frame, &[0, 1, 2].map(|k| case.normals[3 * i + k]));
+            let m = matvec(&frame, &map3(|k| case.normals[3 * i + k]));
             let len = dot(&m, &m).sqrt();
             for r in 0..3 {
                 let n = m[r] / len;
@@ -649,10 +649,10 @@ mod tests {
                 }
             }
             // The view direction: the camera ray taken back to the rest frame (frameᵀ).
-            let ray = [0, 1, 2].map(|k| out.means[3 * i + k] - case.centre[k]);
+            let ray = map3(|k| out.means[3 * i + k] - case.centre[k]);
             let local = matvec_t(&frame, &ray);
             let len = dot(&local, &local).sqrt();
-            let dir = [0, 1, 2].map(|k| out.view_dirs[3 * i + k]);
+            let dir = map3(|k| out.view_dirs[3 * i + k]);
             for k in 0..3 {
                 assert!((dir[k] - local[k] / len).abs() < 1e-14);
             }

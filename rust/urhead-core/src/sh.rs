@@ -1,6 +1,7 @@
 //! Real spherical harmonics of degree 0–3 with the 3DGS / gsplat constants and sign
 //! convention, plus the 3DGS colour mapping `max(Σ b_k·c_k + 0.5, 0)`.
 
+use crate::mat3::map3;
 use crate::Real;
 
 const C0: f64 = 0.282_094_791_773_878_14;
@@ -123,7 +124,7 @@ pub fn sh_sum<T: Real>(b: &[T; 16], coeffs: &[T], start: T) -> [T; 3] {
 /// (NaN included): the gradient the clamp lets through.
 #[inline(always)]
 pub fn unclamped<T: Real>(raw: [T; 3], v_rgb: [T; 3]) -> [T; 3] {
-    [0, 1, 2].map(|ch| {
+    map3(|ch| {
         if raw[ch] >= T::zero() {
             v_rgb[ch]
         } else {

@@ -10,6 +10,7 @@
 use rayon::prelude::*;
 
 use crate::error::{check_finite, check_len, Error, Result};
+use crate::mat3::map3;
 use crate::sh::{direction, num_sh_coeffs, sh_basis, sh_sum, sh_sum_adjoint, unclamped};
 use crate::Real;
 
@@ -129,7 +130,7 @@ pub fn shade_backward<T: Real>(
             for (j, row) in block.chunks_exact_mut(stride).enumerate() {
                 let i = c * CHUNK + j;
                 let (b, _) = sh_basis(inputs.degree, inputs.dir(i), false);
-                let v = unclamped(inputs.raw(i, &b), [0, 1, 2].map(|ch| v_rgb[3 * i + ch]));
+                let v = unclamped(inputs.raw(i, &b), map3(|ch| v_rgb[3 * i + ch]));
                 sh_sum_adjoint(&b, v, &mut row[..3 * n]);
                 if let Some(rest) = &rest {
                     let given = &rest.values[i * rest.width..(i + 1) * rest.width];

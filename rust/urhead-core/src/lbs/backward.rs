@@ -7,7 +7,7 @@ use rayon::prelude::*;
 use super::skeleton::Skeleton;
 use super::{LbsInputs, LbsModel, VERT_CHUNK};
 use crate::error::{check_len, Result};
-use crate::mat3::{add, frobenius, matmul_nt, matmul_tn, matvec_t, outer, zero3, M3, V3};
+use crate::mat3::{add, frobenius, map3, matmul_nt, matmul_tn, matvec_t, outer, zero3, M3, V3};
 use crate::memory::zeroed;
 use crate::parallel::{axpy, batch_chunks_mut, dot, optional_chunks, sum_in_order};
 use crate::Real;
@@ -127,15 +127,15 @@ pub fn lbs_backward<T: Real>(
                     for i in 0..len {
                         let v = start + i;
                         let gv: V3<T> = match grads.v_verts {
-                            Some(g) => [0, 1, 2].map(|c| g[(bi * nv + v) * 3 + c]),
+                            Some(g) => map3(|c| g[(bi * nv + v) * 3 + c]),
                             None => [T::zero(); 3],
                         };
-                        let posed: V3<T> = [0, 1, 2].map(|c| saved.v_posed[(bi * nv + v) * 3 + c]);
+                        let posed: V3<T> = map3(|c| saved.v_posed[(bi * nv + v) * 3 + c]);
                         // ∂L/∂(blended rotation) = g_v ⊗ v_posed + ∂L/∂rotations
                         let mut g_rot = outer(&gv, &posed);
                         if let Some(gr) = grads.v_rotations {
                             let o = (bi * nv + v) * 9;
-                            g_rot = add(&g_rot, &[0, 1, 2].map(|r| [0, 1, 2].map(|c| gr[o + r * 3 + c])));
+                            g_rot = add(&g_rot, &map3(|r| map3(|c| gr[o + r * 3 + c])));
                         }
                         let weights = &model.lbs_weights[v * nj..(v + 1) * nj];
                         let (rot, _) = skeletons[bi].blend(weights);
@@ -193,7 +193,7 @@ pub fn lbs_backward<T: Real>(
             }
         }
         let rest = &saved.rest_joints[bi * nj * 3..(bi + 1) * nj * 3];
-        let joint = |j: usize| -> V3<T> { [0, 1, 2].map(|c| rest[j * 3 + c]) };
+        let joint = |j: usize| -> V3<T> { map3(|c| rest[j * 3 + c]) };
         // A_j = [R_Gj | t_Gj − R_Gj J_j]; posed joints = t_Gj + transl.
         let mut g_grot = vec![zero3::<T>(); nj];
         let mut g_gt = vec![[T::zero(); 3]; nj];
@@ -201,9 +201,7 @@ pub fn lbs_backward<T: Real>(
         for j in 0..nj {
             let jj = joint(j);
             g_grot[j] = add(&g_a_rot[j], &outer(&g_a_t[j], &jj).map(|r| r.map(|x| -x)));
-            let gj = grads
-                .v_joints
-                .map(|g| [0, 1, 2].map(|c| g[(bi * nj + j) * 3 + c]));
+            let gj = grads.v_joints.map(|g| map3(|c| g[(bi * nj + j) * 3 + c]));
             for c in 0..3 {
                 let from_joint = gj.map_or(T::zero(), |g| g[c]);
                 g_gt[j][c] = g_a_t[j][c] + from_joint;

@@ -7,6 +7,7 @@ use super::backward::LbsSaved;
 use super::skeleton::Skeleton;
 use super::{LbsInputs, LbsModel, VERT_CHUNK};
 use crate::error::{check_finite, Result};
+use crate::mat3::map3;
 use crate::memory::zeroed;
 use crate::parallel::{axpy, batch_chunks_mut, dot, sum_in_order};
 use crate::Real;
@@ -108,7 +109,7 @@ pub fn lbs_forward<T: Real>(model: &LbsModel<T>, inputs: &LbsInputs<T>) -> Resul
         .flat_map(|(bi, s)| {
             s.global_t
                 .iter()
-                .flat_map(move |t| [0, 1, 2].map(|c| t[c] + transl[bi * 3 + c]))
+                .flat_map(move |t| map3(|c| t[c] + transl[bi * 3 + c]))
         })
         .collect();
     if check_finite("verts", &verts).is_err() {

@@ -5,7 +5,7 @@
 //! exactly 0 for θ < 2.4e-4) and through their Taylor series below θ = 1e-2, so R keeps its
 //! second-order term and the derivative at θ = 0 is exactly the generator hat(e_k).
 
-use crate::mat3::{add, eye3, hat, matmul, scale, M3, V3};
+use crate::mat3::{add, eye3, hat, map3, matmul, scale, M3, V3};
 use crate::Real;
 
 /// Below this angle the coefficients come from their Taylor series.
@@ -63,7 +63,7 @@ pub fn rotation_with_jacobian<T: Real>(w: &V3<T>) -> (M3<T>, [M3<T>; 3]) {
     let k2 = matmul(&k, &k);
     let (a, b) = (T::c(co.a), T::c(co.b));
     let r = add(&add(&eye3(), &scale(&k, a)), &scale(&k2, b));
-    let jac = [0, 1, 2].map(|i| {
+    let jac = map3(|i| {
         let mut e = [T::zero(); 3];
         e[i] = T::one();
         let g = hat(&e);

@@ -32,6 +32,7 @@ use super::rasterize::camera_to_world_gradient;
 use super::{check_faces, check_tri_id, TILE_ROWS};
 use crate::camera::Camera;
 use crate::error::{check_finite, check_indices, check_len, Error, Result};
+use crate::mat3::map3;
 use crate::memory::copied;
 use crate::Real;
 
@@ -177,8 +178,8 @@ impl<'a, T: Real> AntialiasInputs<'a, T> {
             .verts
             .chunks_exact(3)
             .map(|p| {
-                let p = [0, 1, 2].map(|k| p[k].to_f64().unwrap_or(f64::NAN));
-                [0, 1, 2].map(|r| m[r][0] * p[0] + m[r][1] * p[1] + m[r][2] * p[2] + m[r][3])
+                let p = map3(|k| p[k].to_f64().unwrap_or(f64::NAN));
+                map3(|r| m[r][0] * p[0] + m[r][1] * p[1] + m[r][2] * p[2] + m[r][3])
             })
             .collect();
         let projected = cam_space
@@ -197,7 +198,7 @@ impl<'a, T: Real> AntialiasInputs<'a, T> {
             .par_chunks(3)
             .zip(self.topology.par_chunks(3))
             .map(|(f, across)| {
-                let v = [0, 1, 2].map(|k| &cam_space[f[k] as usize]);
+                let v = map3(|k| &cam_space[f[k] as usize]);
                 if v.iter().any(|c| c[2] <= near || c[2].is_nan()) {
                     return 0u8;
                 }
@@ -353,7 +354,7 @@ impl<T: Real> Scene<'_, T> {
                 }
                 let f = &self.faces[3 * tri..3 * tri + 3];
                 // Frame: origin at the inside pixel centre, x along the pair, y across it.
-                let rel = [0, 1, 2].map(|k| {
+                let rel = map3(|k| {
                     let q = &self.projected[f[k] as usize];
                     let (dx, dy) = (q[0] - centre[0], q[1] - centre[1]);
                     if vertical {

@@ -12,6 +12,7 @@ use super::setup::{
 use super::{check_faces, check_tri_id, RasterImage, TILE_ROWS};
 use crate::camera::Camera;
 use crate::error::{check_finite, check_len, Error, Result};
+use crate::mat3::map3;
 use crate::memory::zeroed;
 use crate::Real;
 
@@ -99,8 +100,7 @@ pub fn rasterize_backward<T: Real>(
         let Some(frame) = plane_frame(&verts, planes.origin) else {
             continue;
         };
-        let m: [[f64; 3]; 3] =
-            [0, 1, 2].map(|i| [0, 1, 2].map(|k| m[3 * i + k].to_f64().unwrap_or(0.0) * frame.scale));
+        let m: [[f64; 3]; 3] = map3(|i| map3(|k| m[3 * i + k].to_f64().unwrap_or(0.0) * frame.scale));
         let g_hom = hom_gradients(&m, &frame.hom);
         let (ox, oy) = (planes.origin[0] as f64, planes.origin[1] as f64);
         for k in 0..3 {
@@ -120,7 +120,7 @@ pub fn rasterize_backward<T: Real>(
 /// `M_i = Σ g_i·e`: since `∂λ̃_0/∂h_1 = h_2 × e` and so on, `∂h_0 = M_1 × h_2 − M_2 × h_1`
 /// and cyclically.
 fn hom_gradients(m: &[[f64; 3]; 3], h: &[Hom; 3]) -> [[f64; 3]; 3] {
-    [0, 1, 2].map(|k| {
+    map3(|k| {
         let (i, j) = ((k + 1) % 3, (k + 2) % 3);
         let a = cross(&m[i], &h[j]);
         let b = cross(&m[j], &h[i]);
@@ -133,9 +133,7 @@ pub(crate) fn camera_to_world_gradient<T: Real>(v_cam: &[f64], camera: &Camera) 
     let r = &camera.viewmat;
     v_cam
         .chunks_exact(3)
-        .flat_map(|g| {
-            [0, 1, 2].map(|c| T::c(r[0][c] as f64 * g[0] + r[1][c] as f64 * g[1] + r[2][c] as f64 * g[2]))
-        })
+        .flat_map(|g| map3(|c| T::c(r[0][c] as f64 * g[0] + r[1][c] as f64 * g[1] + r[2][c] as f64 * g[2])))
         .collect()
 }
 
@@ -172,8 +170,8 @@ pub(crate) fn camera_homogeneous<T: Real>(verts: &[T], camera: &Camera) -> Vec<H
     verts
         .chunks_exact(3)
         .map(|p| {
-            let p = [0, 1, 2].map(|k| p[k].to_f64().unwrap_or(f64::NAN));
-            let c = [0, 1, 2].map(|r| m[r][0] * p[0] + m[r][1] * p[1] + m[r][2] * p[2] + m[r][3]);
+            let p = map3(|k| p[k].to_f64().unwrap_or(f64::NAN));
+            let c = map3(|r| m[r][0] * p[0] + m[r][1] * p[1] + m[r][2] * p[2] + m[r][3]);
             [fx * c[0] + cx * c[2], fy * c[1] + cy * c[2], c[2]]
         })
         .collect()

@@ -13,6 +13,7 @@
 use rayon::prelude::*;
 
 use super::TILE_ROWS;
+use crate::mat3::map3;
 use crate::Real;
 
 /// Sub-pixel bits of the snapped screen positions used for coverage.
@@ -111,7 +112,7 @@ impl<T: Real> TrianglePlanes<T> {
     #[inline(always)]
     pub fn raw(&self, ex: T, ey: T) -> [T; 3] {
         let c = &self.coef;
-        [0, 1, 2].map(|i| c[i][0] * ex + c[i][1] * ey + c[i][2])
+        map3(|i| c[i][0] * ex + c[i][1] * ey + c[i][2])
     }
 }
 
@@ -154,7 +155,7 @@ pub(crate) fn barycentrics<T: Real>(raw: [T; 3]) -> Option<Bary<T>> {
 #[inline(always)]
 pub(crate) fn barycentrics_vjp<T: Real>(b: &Bary<T>, g: [T; 3]) -> [T; 3] {
     let g_dot = g[0] * b.lambda[0] + g[1] * b.lambda[1] + g[2] * b.lambda[2];
-    let g_unclamped: [T; 3] = [0, 1, 2].map(|i| {
+    let g_unclamped: [T; 3] = map3(|i| {
         if b.unclamped[i] > T::zero() {
             (g[i] - g_dot) * b.inv_clamped_sum
         } else {
@@ -366,7 +367,7 @@ fn clip(tri: &[Hom; 3], vp: &Viewport) -> Polygon {
 #[inline(always)]
 fn intersect(inside: &Hom, d_in: f64, outside: &Hom, d_out: f64) -> Hom {
     let t = d_in / (d_in - d_out);
-    [0, 1, 2].map(|k| inside[k] + t * (outside[k] - inside[k]))
+    map3(|k| inside[k] + t * (outside[k] - inside[k]))
 }
 
 /// Projects a clipped vertex and snaps it to the sub-pixel grid.
@@ -419,7 +420,7 @@ fn coverage_triangle(tri: u32, p: [[i64; 2]; 3], vp: &Viewport) -> Option<Covera
     let p = if area2 > 0 { p } else { [p[0], p[2], p[1]] };
     let (x0, x1, y0, y1) = pixel_bbox(&p, vp)?;
     let s = 1i64 << SUBPIXEL_BITS;
-    let edges = [0, 1, 2].map(|k| {
+    let edges = map3(|k| {
         let (a, b) = (p[k], p[(k + 1) % 3]);
         let (dx, dy) = (b[0] - a[0], b[1] - a[1]);
         let top_left = dy < 0 || (dy == 0 && dx > 0);

@@ -10,6 +10,7 @@ use super::binning::Binning;
 use super::lanes::{Lanes, WIDTH};
 use super::{RasterInputs, SplatReal, ALPHA_MAX, ALPHA_MIN, TILE, T_STOP};
 use crate::error::Result;
+use crate::mat3::map3;
 use crate::memory::{filled, zeroed};
 use crate::Real;
 use num_traits::{One, Zero};
@@ -42,7 +43,7 @@ pub(super) struct Splat<T> {
 
 impl<T: Real> Splat<T> {
     pub(super) fn new(inputs: &RasterInputs<T>, g: usize) -> Self {
-        let [a, b, c] = [0, 1, 2].map(|k| inputs.conics[g * 3 + k]);
+        let [a, b, c] = map3(|k| inputs.conics[g * 3 + k]);
         let half = T::c(0.5);
         let opacity = inputs.opacities[g];
         let det = a * c - b * b;
