@@ -7,10 +7,16 @@ from __future__ import annotations
 import pytest
 import torch
 
-from urhead.errors import DTypeError, InvalidArgumentError, NonFiniteError, ShapeError
+from urhead.errors import (
+    DTypeError,
+    IndexRangeError,
+    InvalidArgumentError,
+    NonFiniteError,
+    ShapeError,
+)
 from urhead.losses import l1, ssim, ssim_l1
 from urhead.ops import _reference as ref
-from urhead.ops import masked_l1, masked_ssim, masked_ssim_l1
+from urhead.ops import masked_l1, masked_pixel_l1, masked_ssim, masked_ssim_l1
 
 OPS = {"ssim": (masked_ssim, ref.masked_ssim), "l1": (masked_l1, ref.masked_l1)}
 
@@ -353,3 +359,90 @@ def test_the_losses_module_ssim_l1_is_the_two_terms_in_kernel_and_in_fallback():
     assert fallback.grad_fn is not None
     expected = -0.2 * ssim(image, target, mask).item() + 0.8 * l1(image, target, mask).item()
     assert fallback.item() == pytest.approx(expected, rel=1e-12)
+
+
+def pixel_case(h=23, w=19, c=3, count=150, dtype=torch.float64, seed=41):
+    """Values at listed pixels (repeats included) near a target image with a hole of no
+    data (all-zero pixels) and a soft mask."""
+    g = torch.Generator().manual_seed(seed)
+    target = torch.nn.functional.normalize(
+        torch.randn(h, w, c, generator=g, dtype=torch.float64), dim=-1
+    )
+    target[:3] = 0  # no data in the first rows
+    mask = torch.rand(h, w, generator=g, dtype=torch.float64)
+    mask[5:7] = 0
+    pixels = torch.randint(0, h * w, (count,), generator=g)
+    values = target.reshape(-1, c)[pixels] + 0.3 * torch.randn(
+        count, c, generator=g, dtype=torch.float64
+    )
+    values[0] = target.reshape(-1, c)[pixels[0]]  # a zero difference: subgradient 0
+    return values.to(dtype), pixels, target.to(dtype), mask.to(dtype)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("weight", [1.0, 0.1, -2.0])
+def test_pixel_l1_matches_the_reference_and_its_subgradient(dtype, weight):
+    values, pixels, target, mask = pixel_case(dtype=dtype)
+    x = values.clone().requires_grad_(True)
+    value = masked_pixel_l1(x, pixels, target, mask, weight=weight)
+    (value + 0.5).backward()  # an incoming gradient of exactly 1
+    x_ref = values.double().clone().requires_grad_(True)
+    (weight * ref.masked_pixel_l1(x_ref, pixels, target.double(), mask.double())).backward()
+    tolerance = 1e-12 if dtype == torch.float64 else 1e-6
+    assert value.item() == pytest.approx(
+        weight
+        * ref.masked_pixel_l1(values.double(), pixels, target.double(), mask.double()).item(),
+        rel=tolerance,
+    )
+    assert (x.grad.double() - x_ref.grad).abs().max().item() <= tolerance * abs(weight)
+    assert x.grad[0].abs().max().item() == 0  # sign(0) = 0
+    no_data = (target.reshape(-1, 3)[pixels].abs().sum(-1) == 0) | (mask.reshape(-1)[pixels] == 0)
+    assert no_data.any() and x.grad[no_data].abs().max().item() == 0
+    x2 = values.clone().requires_grad_(True)
+    (3 * masked_pixel_l1(x2, pixels, target, mask, weight=weight)).backward()
+    assert torch.allclose(x2.grad, 3 * x.grad, rtol=1e-6, atol=0)
+
+
+def test_pixel_l1_edge_cases_and_thread_counts(monkeypatch):
+    values, pixels, target, mask = pixel_case(count=30_000, h=200, w=180, seed=43)
+    runs = []
+    for threads in ("1", "2", "3"):
+        monkeypatch.setenv("URHEAD_NUM_THREADS", threads)
+        x = values.clone().requires_grad_(True)
+        value = masked_pixel_l1(x, pixels, target, mask)
+        value.backward()
+        runs.append((value.item(), x.grad))
+    assert all(v == runs[0][0] and torch.equal(g, runs[0][1]) for v, g in runs)
+    # no entry with weight: 0 and no gradient; no entries at all: 0
+    x = values[:5].clone().requires_grad_(True)
+    zero = masked_pixel_l1(x, pixels[:5], target, torch.zeros_like(mask))
+    zero.backward()
+    assert zero.item() == 0 and x.grad.abs().max().item() == 0
+    empty = masked_pixel_l1(values[:0], pixels[:0], target, mask)
+    assert empty.item() == 0
+    # a bool mask is the float one
+    bool_mask = mask > 0.5
+    assert masked_pixel_l1(values, pixels, target, bool_mask).item() == pytest.approx(
+        ref.masked_pixel_l1(values, pixels, target, bool_mask.double()).item(), rel=1e-12
+    )
+
+
+def test_pixel_l1_refuses_bad_inputs_by_name():
+    values, pixels, target, mask = pixel_case()
+    with pytest.raises(IndexRangeError, match="pixels"):
+        masked_pixel_l1(values, pixels.clone().fill_(23 * 19), target, mask)
+    with pytest.raises(IndexRangeError, match="pixels"):
+        masked_pixel_l1(values, -pixels - 1, target, mask)
+    with pytest.raises(ShapeError, match="values"):
+        masked_pixel_l1(values[:-1], pixels, target, mask)
+    with pytest.raises(ShapeError, match="target"):
+        masked_pixel_l1(values, pixels, target[..., :2].contiguous(), mask)
+    with pytest.raises(ShapeError, match="target"):
+        masked_pixel_l1(values, pixels, target, mask[:-1].contiguous())
+    with pytest.raises(DTypeError):
+        masked_pixel_l1(values, pixels, target.float(), mask)
+    for weight in (float("nan"), float("inf"), True, None):
+        with pytest.raises(InvalidArgumentError, match="weight"):
+            masked_pixel_l1(values, pixels, target, mask, weight=weight)
+    with pytest.raises(InvalidArgumentError, match="target"):
+        masked_pixel_l1(values, pixels, target.clone().requires_grad_(True), mask)

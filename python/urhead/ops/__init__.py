@@ -14,7 +14,7 @@ from urhead.ops.rotate import rotate_normalize
 from urhead.ops.sh_texture import half_maps, sh_texture
 from urhead.ops.shading import sh_shade
 from urhead.ops.splat import SplatOutput, normal_to_quat, rasterize_gaussians
-from urhead.ops.ssim import masked_l1, masked_ssim, masked_ssim_l1
+from urhead.ops.ssim import masked_l1, masked_pixel_l1, masked_ssim, masked_ssim_l1
 from urhead.ops.texture import TextureGather, texture
 from urhead.ops.uv_error import accumulate_uv_error, nearest_covered_pixel
 
@@ -35,6 +35,7 @@ __all__ = [
     "lbs",
     "lift_gaussians_geometry",
     "masked_l1",
+    "masked_pixel_l1",
     "masked_ssim",
     "masked_ssim_l1",
     "nearest_covered_pixel",

@@ -642,6 +642,14 @@ def masked_l1(image, target, mask=None):
     return masked_mean((image[..., : target.shape[-1]] - target).abs(), mask)
 
 
+def masked_pixel_l1(values, pixels, target, mask):
+    """Reference of :func:`urhead.ops.masked_pixel_l1`."""
+    gt = target.reshape(-1, target.shape[-1]).index_select(0, pixels)
+    weight = mask.reshape(-1).to(values.dtype).index_select(0, pixels) * (gt.abs().sum(-1) > 0)
+    diff = (values - gt).abs().sum(-1)
+    return (diff * weight).sum() / weight.sum().clamp_min(1)
+
+
 def sh_shade(coeffs, dirs, degree):
     """Reference of :func:`urhead.ops.sh_shade`."""
     k = (degree + 1) ** 2

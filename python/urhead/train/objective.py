@@ -24,6 +24,8 @@ import torch
 from urhead.head.mesh import uniform_laplacian
 from urhead.losses import l1, ssim_l1
 from urhead.model.avatar import Render
+from urhead.ops import _reference as reference
+from urhead.ops import masked_pixel_l1
 
 OFFSET_UNIT = 0.1
 """metres: the Gaussian offset regulariser is the mean of (E / OFFSET_UNIT)²."""
@@ -74,8 +76,7 @@ class Objective:
         if with_mesh_term:  # the mesh's colour read in place from its RGBA
             total = total + l1(render.mesh.rgba, target, weight=photo_weight * self.mesh_term)
         if self.use_normals and self.lambda_normal > 0:
-            normal = normal_loss(render, frame)
-            total = total + self.lambda_normal * normal
+            total = total + normal_loss(render, frame, weight=self.lambda_normal)
         if self.lambda_laplacian > 0:
             lap = laplacian_loss(render.mesh.offsets, self.laplacian)
             total = total + self.lambda_laplacian * lap
@@ -103,14 +104,14 @@ def silhouette_loss(render: Render, frame) -> torch.Tensor:
     return (coverage(render) - frame.mask).abs().mean()
 
 
-def normal_loss(render: Render, frame) -> torch.Tensor:
+def normal_loss(render: Render, frame, weight: float = 1.0) -> torch.Tensor:
     """Mean ‖N_mesh − N_gt‖₁ over covered pixels inside the mask where N_gt is defined
-    (camera axes, both unit)."""
-    pixels = render.mesh.pixels
-    gt = frame.normals.reshape(-1, 3).index_select(0, pixels)
-    weight = frame.mask.reshape(-1).index_select(0, pixels) * (gt.abs().sum(-1) > 0)
-    diff = (render.mesh.normals - gt).abs().sum(-1)
-    return (diff * weight).sum() / weight.sum().clamp_min(1)
+    (camera axes, both unit), times ``weight`` (inside the kernel, as the photometric
+    terms')."""
+    normals, pixels = render.mesh.normals, render.mesh.pixels
+    if normals.dtype in (torch.float32, torch.float64) and frame.normals.dtype == normals.dtype:
+        return masked_pixel_l1(normals, pixels, frame.normals, frame.mask, weight=weight)
+    return weight * reference.masked_pixel_l1(normals, pixels, frame.normals, frame.mask)
 
 
 def laplacian_loss(verts: torch.Tensor, laplacian: sp.csr_matrix) -> torch.Tensor:

@@ -3,8 +3,8 @@
 
 use urhead_core::error::Error;
 use urhead_core::ssim::{
-    masked_l1, masked_l1_with_grad, masked_ssim, masked_ssim_l1_with_grad, masked_ssim_with_grad, SsimInputs,
-    C1, C2, SIGMA, WINDOW,
+    masked_l1, masked_l1_with_grad, masked_ssim, masked_ssim_l1_with_grad, masked_ssim_with_grad,
+    pixel_l1_with_grad, PixelL1Inputs, SsimInputs, C1, C2, SIGMA, WINDOW,
 };
 use urhead_core::testing::{on_threads, Rng};
 
@@ -398,5 +398,75 @@ fn ssim_and_l1_in_one_pass_refuse_bad_inputs() {
     assert!(matches!(
         masked_ssim_l1_with_grad(&wider, 1.0, 1.0),
         Err(Error::Shape { arg: "image", .. })
+    ));
+}
+
+/// The L1 of values at listed pixels (the normal loss) against its definition in f64: the
+/// mask's weight where the target holds data, 0 on all-zero target pixels, sign(0) = 0,
+/// repeated pixels counted per entry; and the same bits on 1–3 threads.
+#[test]
+fn pixel_l1_matches_its_definition() {
+    let mut rng = Rng::new(81);
+    let (n, c, count) = (500, 3, 20_000);
+    let mut target: Vec<f64> = rng.vec(n * c, -1.0, 1.0);
+    target[..30 * c].iter_mut().for_each(|t| *t = 0.0); // no data at the first 30 pixels
+    let mask: Vec<f64> = rng.vec(n, 0.0, 1.0);
+    let pixels: Vec<i64> = (0..count)
+        .map(|_| rng.uniform(0.0, n as f64).floor() as i64)
+        .collect();
+    let mut values: Vec<f64> = rng.vec(count * c, -1.0, 1.0);
+    values[..c].copy_from_slice(&target[pixels[0] as usize * c..][..c]);
+    let inputs = PixelL1Inputs {
+        values: &values,
+        pixels: &pixels,
+        target: &target,
+        mask: &mask,
+        channels: c,
+    };
+    let weight_of = |p: usize| {
+        let x = pixels[p] as usize;
+        if target[x * c..(x + 1) * c].iter().any(|t| *t != 0.0) {
+            mask[x]
+        } else {
+            0.0
+        }
+    };
+    let total_weight: f64 = (0..count).map(weight_of).sum();
+    let direct: f64 = (0..count)
+        .map(|p| {
+            let x = pixels[p] as usize;
+            weight_of(p)
+                * (0..c)
+                    .map(|k| (values[p * c + k] - target[x * c + k]).abs())
+                    .sum::<f64>()
+        })
+        .sum::<f64>()
+        / total_weight;
+    let (value, grad) = pixel_l1_with_grad(&inputs, -0.5).unwrap();
+    assert!((value - direct).abs() < 1e-12 * direct, "{value} vs {direct}");
+    for p in 0..count {
+        let x = pixels[p] as usize;
+        for k in 0..c {
+            let d = values[p * c + k] - target[x * c + k];
+            let expected = -0.5 * weight_of(p) * if d == 0.0 { 0.0 } else { d.signum() } / total_weight;
+            assert!((grad[p * c + k] - expected).abs() <= 1e-15, "{p}, {k}");
+        }
+    }
+    assert!(grad[..c].iter().all(|g| *g == 0.0));
+    let run = |threads: usize| on_threads(threads, || pixel_l1_with_grad(&inputs, 1.0).unwrap());
+    let (v1, g1) = run(1);
+    for threads in [2, 3] {
+        let (v, g) = run(threads);
+        assert_eq!(v.to_bits(), v1.to_bits());
+        assert!(g.iter().zip(&g1).all(|(a, b)| a.to_bits() == b.to_bits()));
+    }
+    let bad = PixelL1Inputs {
+        pixels: &[n as i64; 1],
+        values: &values[..c],
+        ..inputs
+    };
+    assert!(matches!(
+        pixel_l1_with_grad(&bad, 1.0),
+        Err(Error::IndexOutOfRange { arg: "pixels", .. })
     ));
 }

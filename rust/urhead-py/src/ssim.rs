@@ -1,6 +1,7 @@
 //! Binding of `urhead_core::ssim`: masked SSIM and L1 of `(H, W, C)` images, chosen by
 //! name, as a value-only entry point and a value-with-gradient one, and the two together
-//! with one gradient; each serving float32 and float64.
+//! with one gradient; and the L1 of values at listed pixels against an image (the normal
+//! loss); each serving float32 and float64.
 
 use numpy::{Element, PyReadonlyArrayDyn};
 use pyo3::prelude::*;
@@ -200,10 +201,66 @@ fn ssim_l1_and_grad<'py, T: Element + Real>(
     ))
 }
 
+/// Mean L1 of `values (P, C)` against `target (H, W, C)` at their `pixels (P,)`, weighted by
+/// `mask (H, W)` where the target holds data, and the (P, C) gradient of `weight ·` it.
+#[pyfunction]
+pub fn pixel_l1_grad<'py>(
+    py: Python<'py>,
+    values: &Bound<'py, PyAny>,
+    pixels: Arr<'py, i64>,
+    target: &Bound<'py, PyAny>,
+    mask: &Bound<'py, PyAny>,
+    weight: f64,
+    num_threads: usize,
+) -> PyResult<(f64, Bound<'py, PyAny>)> {
+    with_float_type!(values, T => pixel_l1_and_grad::<T>(
+        py,
+        values.extract()?,
+        pixels,
+        target.extract()?,
+        mask.extract()?,
+        weight,
+        num_threads,
+    ))
+}
+
+fn pixel_l1_and_grad<'py, T: Element + Real>(
+    py: Python<'py>,
+    values: Arr<'py, T>,
+    pixels: Arr<'py, i64>,
+    target: Arr<'py, T>,
+    mask: Arr<'py, T>,
+    weight: f64,
+    num_threads: usize,
+) -> PyResult<(f64, Bound<'py, PyAny>)> {
+    let dims = shape(&values, "values", 2, "(P, C)")?;
+    shape(&pixels, "pixels", 1, "(P,)")?;
+    let image = shape(&target, "target", 3, "(H, W, C)")?;
+    let mask_dims = shape(&mask, "mask", 2, "(H, W)")?;
+    if image[2] != dims[1] || mask_dims[..] != image[..2] {
+        return Err(ShapeError::new_err(format!(
+            "target must be (H, W, C) with the values' C = {} and mask (H, W), got {image:?} and {mask_dims:?}",
+            dims[1]
+        )));
+    }
+    let inputs = ssim::PixelL1Inputs {
+        values: data(&values, "values")?,
+        pixels: data(&pixels, "pixels")?,
+        target: data(&target, "target")?,
+        mask: data(&mask, "mask")?,
+        channels: dims[1],
+    };
+    let (v, grad) = py
+        .allow_threads(|| with_threads(num_threads, || ssim::pixel_l1_with_grad(&inputs, weight)))
+        .map_err(py_err)?;
+    Ok((v.to_f64().unwrap_or(f64::NAN), array(py, grad, &dims)?.into_any()))
+}
+
 /// Adds the entry points to `_core`.
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(masked_mean, m)?)?;
     m.add_function(wrap_pyfunction!(masked_mean_grad, m)?)?;
     m.add_function(wrap_pyfunction!(masked_ssim_l1_grad, m)?)?;
+    m.add_function(wrap_pyfunction!(pixel_l1_grad, m)?)?;
     Ok(())
 }

@@ -8,7 +8,7 @@ use rayon::prelude::*;
 
 use super::forward::expand_mask_row;
 use super::{check_weight, SsimInputs, BAND_ROWS};
-use crate::error::Result;
+use crate::error::{check_indices, check_len, Error, Result};
 use crate::memory::{copy_short, zeroed};
 use crate::Real;
 
@@ -91,16 +91,12 @@ pub(super) fn add_slope_row<T: Real>(x: &[T], y: &[T], mask: &[T], scale: T, out
     }
 }
 
-/// sign(d) with sign(0) = 0 (and NaN → 0).
+/// sign(d) with sign(0) = 0 (and NaN → 0), without branches: a residual's sign is a coin
+/// toss, and as branches its mispredictions cost more than the rest of a pixel's work.
 #[inline(always)]
 fn sign<T: Real>(d: T) -> T {
-    if d > T::zero() {
-        T::one()
-    } else if d < T::zero() {
-        -T::one()
-    } else {
-        T::zero()
-    }
+    let (above, below) = (u8::from(d > T::zero()), u8::from(d < T::zero()));
+    T::c(f64::from(above)) - T::c(f64::from(below))
 }
 
 /// A row's length in the target (`W·C`) and in the image (`W·S`).
@@ -161,4 +157,113 @@ pub(super) fn row_sum<T: Real>(x: &[T], y: &[T], mask: &[T]) -> f64 {
     (acc.iter().copied().sum::<T>() + tail)
         .to_f64()
         .unwrap_or(f64::NAN)
+}
+
+/// Entries per parallel chunk of [`pixel_l1_with_grad`]; fixed, so the partial sums merge
+/// in the same order for any thread count.
+const PIXEL_CHUNK: usize = 8192;
+
+/// Borrowed inputs of [`pixel_l1_with_grad`]: values at listed pixels against an image.
+#[derive(Debug, Clone, Copy)]
+pub struct PixelL1Inputs<'a, T> {
+    /// `(P, C)` the values compared (e.g. a mesh's normals at its covered pixels).
+    pub values: &'a [T],
+    /// `(P,)` each value's flat pixel index `y·W + x` into `target` and `mask`.
+    pub pixels: &'a [i64],
+    /// `(N, C)` the reference image's pixels (a constant); a pixel of all zeros holds no
+    /// data and is not compared.
+    pub target: &'a [T],
+    /// `(N,)` pixel weights (a constant).
+    pub mask: &'a [T],
+    /// `C`.
+    pub channels: usize,
+}
+
+impl<T: Real> PixelL1Inputs<'_, T> {
+    /// Shapes and pixel indices; returns `P`.
+    fn validate(&self) -> Result<usize> {
+        let c = self.channels;
+        if c == 0 {
+            return Err(Error::Shape {
+                arg: "values",
+                expected: "(P, C) with C >= 1".into(),
+                got: "C = 0".into(),
+            });
+        }
+        let count = self.pixels.len();
+        check_len(
+            "values",
+            self.values,
+            count * c,
+            &format!("(P, C) = ({count}, {c})"),
+        )?;
+        let n = self.mask.len();
+        check_len(
+            "target",
+            self.target,
+            n * c,
+            &format!("(N, C) = ({n}, {c}), N the mask's"),
+        )?;
+        check_indices("pixels", self.pixels, 0, n as i64)?;
+        Ok(count)
+    }
+}
+
+/// `Σ_p w_p·Σ_c |v_pc − t_{x_p c}| / max(Σ_p w_p, 1)` with `w_p` [`PixelL1Inputs`]'s
+/// weight of entry `p` (the mask at its pixel `x_p`, 0 where the target has no data) — the
+/// paper's normal loss, mean ‖N − N_gt‖₁ over the covered pixels — and the subgradient of
+/// `weight ·` it with respect to the values (sign(0) = 0), the weight folded into the
+/// per-entry scale as for [`masked_l1_with_grad`]. Sums in f64, merged in a fixed order:
+/// the same bits for any thread count.
+pub fn pixel_l1_with_grad<T: Real>(inputs: &PixelL1Inputs<'_, T>, weight: f64) -> Result<(T, Vec<T>)> {
+    check_weight(weight)?;
+    let count = inputs.validate()?;
+    let c = inputs.channels;
+    let mut grad = zeroed("pixel L1 gradient (P, C)", count * c)?;
+    // One pass over the listed pixels: w·sign(d) per element (exact: the sign is ±1 or 0)
+    // and each chunk's Σ w·|d| and Σ w; then the gradient scaled once the total weight is
+    // known — the same bits as scaling w by it first.
+    let partials: Vec<(f64, f64)> = grad
+        .par_chunks_mut(PIXEL_CHUNK * c)
+        .enumerate()
+        // Three channels (normals) compiled apart: the per-element loops unroll.
+        .map(|(k, grad)| match c {
+            3 => pixel_l1_chunk(inputs, k, grad, 3),
+            _ => pixel_l1_chunk(inputs, k, grad, c),
+        })
+        .collect();
+    let denominator = partials.iter().map(|p| p.1).sum::<f64>().max(1.0);
+    let scale = T::c(weight / denominator);
+    grad.par_chunks_mut(PIXEL_CHUNK * c).for_each(|chunk| {
+        for g in chunk {
+            *g *= scale;
+        }
+    });
+    let total: f64 = partials.iter().map(|p| p.0).sum();
+    Ok((T::c(total / denominator), grad))
+}
+
+/// Chunk `k` of [`pixel_l1_with_grad`]'s pass: writes `w·sign(d)` into `grad` and returns
+/// its `(Σ w·|d|, Σ w)`.
+#[inline(always)]
+fn pixel_l1_chunk<T: Real>(inputs: &PixelL1Inputs<'_, T>, k: usize, grad: &mut [T], c: usize) -> (f64, f64) {
+    let (mut total, mut weights) = (0.0, 0.0);
+    for (i, g) in grad.chunks_exact_mut(c).enumerate() {
+        let p = k * PIXEL_CHUNK + i;
+        let pixel = inputs.pixels[p] as usize;
+        let v = &inputs.values[p * c..(p + 1) * c];
+        let t = &inputs.target[pixel * c..(pixel + 1) * c];
+        // the mask at the pixel, 0 where the target holds no data (all zeros)
+        let defined = t.iter().fold(false, |any, x| any | (*x != T::zero()));
+        let w = if defined { inputs.mask[pixel] } else { T::zero() };
+        let mut row = T::zero();
+        for ch in 0..c {
+            let d = v[ch] - t[ch];
+            row += d.abs();
+            g[ch] = w * sign(d);
+        }
+        total += (w * row).to_f64().unwrap_or(f64::NAN);
+        weights += w.to_f64().unwrap_or(f64::NAN);
+    }
+    (total, weights)
 }

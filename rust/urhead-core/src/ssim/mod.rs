@@ -23,7 +23,7 @@ mod l1;
 
 pub use backward::{masked_ssim_l1_with_grad, masked_ssim_with_grad};
 pub use forward::masked_ssim;
-pub use l1::{masked_l1, masked_l1_with_grad};
+pub use l1::{masked_l1, masked_l1_with_grad, pixel_l1_with_grad, PixelL1Inputs};
 
 use rayon::prelude::*;
 
