@@ -446,3 +446,17 @@ def test_pixel_l1_refuses_bad_inputs_by_name():
             masked_pixel_l1(values, pixels, target, mask, weight=weight)
     with pytest.raises(InvalidArgumentError, match="target"):
         masked_pixel_l1(values, pixels, target.clone().requires_grad_(True), mask)
+
+
+def test_pixel_l1_passes_non_finite_values_on_as_a_non_finite_loss():
+    """A NaN or infinite value (a diverged step) gives a non-finite loss, as the torch ops
+    did, for the step guard to reject; it neither raises nor crashes."""
+    values, pixels, target, mask = pixel_case(seed=47)
+    weighted = (target.reshape(-1, 3)[pixels].abs().sum(-1) > 0) & (mask.reshape(-1)[pixels] > 0)
+    entry = int(weighted.nonzero()[0])
+    for bad in (float("nan"), float("inf")):
+        x = values.clone()
+        x[entry, 1] = bad
+        value = masked_pixel_l1(x.requires_grad_(True), pixels, target, mask)
+        assert not torch.isfinite(value)
+        value.backward()
