@@ -6,10 +6,12 @@ Why one node: composed from :meth:`MapLayout.split`, ``exp``, ``sigmoid``,
 reach four consumers. Each map column is copied out of the 56-wide rows on its own (a
 strided pass over all of them each), the split's backward concatenates a zero-filled
 colour gradient with the other maps', and autograd then adds the whole ``(N, channels)``
-gradient of the SH colour to it. Here the columns after the colour are copied out once,
-and the colour's kernel writes the whole rows' gradient, the other maps' columns in the
-same pass. The same kernels run on the same values: the outputs are bit for bit the
-composed path's, and so are the gradients (up to the sign of a zero colour gradient).
+gradient of the SH colour to it. Here one kernel pass splits the maps after the colour out
+of the rows (:func:`~urhead.ops.lift.lift_tail_split`) and one joins their gradients
+(:func:`~urhead.ops.lift.lift_tail_grad`), and the colour's kernel writes the whole rows'
+gradient, the other maps' columns in the same pass. The same kernels run on the same
+values: the outputs are bit for bit the composed path's, and so are the gradients (up to
+the sign of a zero colour gradient).
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from typing import NamedTuple
 import torch
 
 from urhead.model.map_layout import MapLayout, shading_features, shading_gain
-from urhead.ops.lift import lift_backward, lift_forward
+from urhead.ops.lift import lift_backward, lift_forward, lift_tail_grad, lift_tail_split
 from urhead.ops.shading import sh_shade_backward, sh_shade_forward
 
 
@@ -63,35 +65,32 @@ class _Columns(NamedTuple):
         )
 
 
-# The tail's fixed columns (MapLayout's order): normal N, displacement D, opacity O, scale S.
-_NORMAL, _DISPLACEMENT, _OPACITY, _SCALE = slice(0, 3), 3, 4, slice(5, 8)
-
-
 class _LiftRows(torch.autograd.Function):
     @staticmethod
     def forward(ctx, rows, verts, rotations, face_verts, bary, centre, columns, degree):
-        tail = rows[:, columns.colour :].contiguous()
-        normals = tail[:, _NORMAL].contiguous()
-        lift = tail[:, _DISPLACEMENT]
-        offset = None if columns.offset is None else tail[:, columns.offset]
-        lift = (lift if offset is None else lift + offset).contiguous()
+        normals, lift, raw_scales, raw_opacities, offset = lift_tail_split(
+            rows, columns.colour, columns.offset
+        )
         saved = (verts, rotations, normals, lift, face_verts, bary, centre)
         means, _, quats, frames, view_dirs = lift_forward(*saved)
-        scales = tail[:, _SCALE].contiguous().exp()
-        opacities = torch.sigmoid(tail[:, _OPACITY].contiguous())
+        scales = raw_scales.exp()
+        opacities = torch.sigmoid(raw_opacities)
         rgb = sh_shade_forward(rows, view_dirs, degree)
         colors = rgb
         features = gain = None
         if columns.shading is not None:
             features = shading_features(frames)
-            gain = shading_gain(tail[:, columns.shading], features)
+            shading = columns.shading
+            gain = shading_gain(
+                rows[:, columns.colour + shading.start : columns.colour + shading.stop], features
+            )
             colors = rgb * gain[:, None]
         ctx.set_materialize_grads(False)
         ctx.save_for_backward(rows, *saved, view_dirs, scales, opacities, rgb, features, gain)
         ctx.columns, ctx.degree = columns, degree
         ctx.mark_non_differentiable(frames)
         outputs = (means, quats, scales, opacities, colors, frames)
-        return (*outputs, offset.clone()) if offset is not None else outputs
+        return (*outputs, offset) if offset is not None else outputs
 
     @staticmethod
     def backward(ctx, v_means, v_quats, v_scales, v_opacities, v_colors, _v_frames, *v_offset):
@@ -106,19 +105,20 @@ class _LiftRows(torch.autograd.Function):
             )
         if not need_rows:
             return None, v_verts, v_rotations, None, None, None, None, None
-        # The gradient of the columns after the colour, then the whole rows' in one pass.
-        v_tail = rows.new_zeros(rows.shape[0], rows.shape[1] - columns.colour)
-        if v_lift is not None:
-            v_tail[:, _NORMAL] = v_normals
-            v_tail[:, _DISPLACEMENT] = v_lift
-            if columns.offset is not None:
-                v_tail[:, columns.offset] = v_lift
-        if v_scales is not None:
-            v_tail[:, _SCALE] = v_scales * scales  # exp's backward, as torch's
-        if v_opacities is not None:
-            v_tail[:, _OPACITY] = v_opacities * (1 - opacities) * opacities  # sigmoid's
-        if v_offset and v_offset[0] is not None:
-            v_tail[:, columns.offset] += v_offset[0]
+        # The gradient of the columns after the colour (one pass: exp's and sigmoid's
+        # derivatives as torch's), then the whole rows' in one pass.
+        v_tail = lift_tail_grad(
+            scales,
+            opacities,
+            rows.shape[1],
+            columns.colour,
+            columns.offset,
+            v_normals if v_lift is not None else None,
+            v_lift,
+            v_scales,
+            v_opacities,
+            v_offset[0] if v_offset else None,
+        )
         if v_colors is None:
             v_rows = rows.new_zeros(rows.shape)
             v_rows[:, columns.colour :] = v_tail

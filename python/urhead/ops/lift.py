@@ -77,6 +77,42 @@ def lift_backward(saved, v_means, v_normals, v_quats, needs):
     return tuple(map(from_numpy, grads))
 
 
+def lift_tail_split(rows: torch.Tensor, start: int, offset: int | None):
+    """The lift's maps out of the Gaussians' contiguous map rows ``(N, C)`` in one pass (no
+    autograd): ``(normals (N, 3), lift (N,), raw scales (N, 3), raw opacities (N,),
+    offset (N,) or None)`` from the tail at channel ``start`` (N, D, O, S, and the offset
+    map E at tail channel ``offset``; the lift is D + E with one)."""
+    out = native("lift_tail_split")(
+        to_numpy("rows", rows, rows.dtype), start, offset, num_threads()
+    )
+    return tuple(map(from_numpy, out))
+
+
+def lift_tail_grad(
+    scales, opacities, channels, start, offset, v_normals, v_lift, v_scales, v_opacities, v_offset
+):
+    """The rows' tail gradient ``(N, channels − start)`` (no autograd) from the gradients of
+    :func:`lift_tail_split`'s maps and the activations ``scales = exp(S)``, ``opacities =
+    sigmoid(O)``; a ``None`` gradient contributes nothing (``v_normals`` and ``v_lift``
+    come together)."""
+    dtype = scales.dtype
+    return torch.from_numpy(
+        native("lift_tail_grad")(
+            scales.numpy(),
+            opacities.numpy(),
+            channels,
+            start,
+            offset,
+            grad_to_numpy("v_normals", v_normals, dtype),
+            grad_to_numpy("v_lift", v_lift, dtype),
+            grad_to_numpy("v_scales", v_scales, dtype),
+            grad_to_numpy("v_opacities", v_opacities, dtype),
+            grad_to_numpy("v_offset", v_offset, dtype),
+            num_threads(),
+        )
+    )
+
+
 class _LiftGaussians(torch.autograd.Function):
     @staticmethod
     def forward(ctx, verts, rotations, normals, lift, face_verts, bary, centre):

@@ -11,6 +11,7 @@ pub mod composite;
 pub mod error;
 pub mod lbs;
 pub mod lift;
+pub mod lift_tail;
 pub mod mat3;
 pub mod memory;
 pub mod parallel;

@@ -1,10 +1,12 @@
-//! Binding of `urhead_core::lift`: the Gaussian lift's forward and adjoint, each entry point
-//! serving float32 and float64 through one generic body.
+//! Binding of `urhead_core::lift` and `lift_tail`: the Gaussian lift's forward and adjoint,
+//! and its maps split out of the map rows (and their gradients joined back), each entry
+//! point serving float32 and float64 through one generic body.
 
 use numpy::{Element, PyReadonlyArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::PyTuple;
 use urhead_core::lift::{lift_backward, lift_forward, LiftGradOutputs, LiftInputs, LiftNeeds};
+use urhead_core::lift_tail::{join_tail_grad, split_tail, TailGrads, TailLayout};
 use urhead_core::Real;
 
 use crate::arrays::{array, data, optional, optional_array, with_float_type};
@@ -179,8 +181,100 @@ pub fn lift_gaussians_backward<'py>(
     })
 }
 
+/// The contiguous data of an optional array.
+fn optional_data<'a, T: Element>(arr: &'a Option<Arr<'_, T>>, arg: &str) -> PyResult<Option<&'a [T]>> {
+    arr.as_ref().map(|a| data(a, arg)).transpose()
+}
+
+/// The lift's maps split out of the Gaussians' map rows `(N, C)`, whose tail starts at
+/// channel `start` → (normals (N, 3), lift (N,), raw scales (N, 3), raw opacities (N,),
+/// offset (N,) or None); `offset` the offset map's channel in the tail.
+#[pyfunction]
+pub fn lift_tail_split<'py>(
+    py: Python<'py>,
+    rows: &Bound<'py, PyAny>,
+    start: usize,
+    offset: Option<usize>,
+    num_threads: usize,
+) -> PyResult<Bound<'py, PyTuple>> {
+    with_float_type!(rows, T => {
+        let rows: Arr<'py, T> = rows.extract()?;
+        let n = leading(&rows, "rows", &[rows.shape().get(1).copied().unwrap_or(0)], "(N, C)")?;
+        let layout = TailLayout { channels: rows.shape()[1], start, offset };
+        let data = data(&rows, "rows")?;
+        let out = py
+            .allow_threads(|| with_threads(num_threads, || split_tail(data, &layout)))
+            .map_err(py_err)?;
+        PyTuple::new(
+            py,
+            [
+                array(py, out.normals, &[n, 3])?.into_any().unbind(),
+                array(py, out.lift, &[n])?.into_any().unbind(),
+                array(py, out.scales, &[n, 3])?.into_any().unbind(),
+                array(py, out.opacities, &[n])?.into_any().unbind(),
+                optional(py, out.offset, &[n])?,
+            ],
+        )
+    })
+}
+
+/// The tail's gradient `(N, C − start)` from the lift maps' gradients (each None when
+/// none came back): `v_normals` with `v_lift`, `v_scales` (of `exp(S)`, whose values are
+/// `scales`), `v_opacities` (of `sigmoid(O)`: `opacities`), `v_offset` (E's own).
+#[pyfunction]
+pub fn lift_tail_grad<'py>(
+    py: Python<'py>,
+    scales: &Bound<'py, PyAny>,
+    opacities: &Bound<'py, PyAny>,
+    channels: usize,
+    start: usize,
+    offset: Option<usize>,
+    v_normals: Option<&Bound<'py, PyAny>>,
+    v_lift: Option<&Bound<'py, PyAny>>,
+    v_scales: Option<&Bound<'py, PyAny>>,
+    v_opacities: Option<&Bound<'py, PyAny>>,
+    v_offset: Option<&Bound<'py, PyAny>>,
+    num_threads: usize,
+) -> PyResult<Bound<'py, PyAny>> {
+    with_float_type!(scales, T => {
+        let scales: Arr<'py, T> = scales.extract()?;
+        let opacities: Arr<'py, T> = opacities.extract()?;
+        let n = leading(&scales, "scales", &[3], "(N, 3)")?;
+        leading(&opacities, "opacities", &[], "(N,)")?;
+        let [v_normals, v_lift, v_scales, v_opacities, v_offset] = [
+            optional_array::<T>(v_normals)?,
+            optional_array::<T>(v_lift)?,
+            optional_array::<T>(v_scales)?,
+            optional_array::<T>(v_opacities)?,
+            optional_array::<T>(v_offset)?,
+        ];
+        let normals_and_lift = match (optional_data(&v_normals, "v_normals")?, optional_data(&v_lift, "v_lift")?) {
+            (Some(n), Some(l)) => Some((n, l)),
+            (None, None) => None,
+            _ => {
+                return Err(ShapeError::new_err("v_normals and v_lift come together or not at all"));
+            }
+        };
+        let grads = TailGrads {
+            normals_and_lift,
+            scales: optional_data(&v_scales, "v_scales")?.map(|v| Ok::<_, PyErr>((v, data(&scales, "scales")?))).transpose()?,
+            opacities: optional_data(&v_opacities, "v_opacities")?
+                .map(|v| Ok::<_, PyErr>((v, data(&opacities, "opacities")?)))
+                .transpose()?,
+            offset: optional_data(&v_offset, "v_offset")?,
+        };
+        let layout = TailLayout { channels, start, offset };
+        let out = py
+            .allow_threads(|| with_threads(num_threads, || join_tail_grad(n, &layout, &grads)))
+            .map_err(py_err)?;
+        Ok(array(py, out, &[n, channels.saturating_sub(start)])?.into_any())
+    })
+}
+
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(lift_gaussians_forward, m)?)?;
     m.add_function(wrap_pyfunction!(lift_gaussians_backward, m)?)?;
+    m.add_function(wrap_pyfunction!(lift_tail_split, m)?)?;
+    m.add_function(wrap_pyfunction!(lift_tail_grad, m)?)?;
     Ok(())
 }
