@@ -2,7 +2,7 @@
 averaged inside the head mask, so background pixels neither train nor score.
 
 Images are (H, W, C) float tensors in [0, 1]; masks are (H, W) in [0, 1] or bool.
-:func:`ssim`, :func:`l1` and :func:`ssim_l1` run the fused Rust kernels of
+:func:`ssim`, :func:`l1`, :func:`ssim_l1` and :func:`pixel_l1` run the fused Rust kernels of
 :mod:`urhead.ops.ssim` for CPU float32/float64 images with a constant target and mask (the
 training loop's case) and fall back to the plain-torch references of
 :mod:`urhead.ops._reference` otherwise.
@@ -12,8 +12,9 @@ from __future__ import annotations
 
 import torch
 
+from urhead.ops import _reference as reference
 from urhead.ops._reference import masked_mean, ssim_map
-from urhead.ops.ssim import masked_l1, masked_ssim, masked_ssim_l1
+from urhead.ops.ssim import masked_l1, masked_pixel_l1, masked_ssim, masked_ssim_l1
 
 
 def _kernel_applies(image, target, mask) -> bool:
@@ -62,6 +63,16 @@ def ssim_l1(image, target, mask=None, *, ssim_weight: float, l1_weight: float) -
             l1_weight=l1_weight,
         )
     return ssim(image, target, mask, weight=ssim_weight) + l1(image, target, mask, weight=l1_weight)
+
+
+def pixel_l1(values, pixels, target, mask, *, weight: float = 1.0) -> torch.Tensor:
+    """Mean ‖v_p − target[x_p]‖₁ of ``values (P, C)`` at their ``pixels`` over the mask
+    where the target holds data, times ``weight`` (the normal loss): the kernel of
+    :func:`~urhead.ops.masked_pixel_l1` for float32/float64 values of the target's dtype,
+    the plain-torch reference otherwise."""
+    if values.dtype in (torch.float32, torch.float64) and target.dtype == values.dtype:
+        return masked_pixel_l1(values, pixels, target, mask, weight=weight)
+    return weight * reference.masked_pixel_l1(values, pixels, target, mask)
 
 
 def psnr(image, target, mask=None) -> torch.Tensor:

@@ -90,16 +90,29 @@ class _PixelL1(torch.autograd.Function):
         return _times(ctx.saved_tensors[0], grad_value), None, None, None, None
 
 
+def _check_weight(name: str, weight) -> None:
+    """A loss term's weight: a finite number (not a bool)."""
+    if (
+        isinstance(weight, bool)
+        or not isinstance(weight, (int, float))
+        or not math.isfinite(weight)
+    ):
+        raise InvalidArgumentError(f"{name} must be a finite number, got {weight!r}")
+
+
+def _mask_as(mask: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """``mask`` (float or bool) in the kernel's ``dtype``; an (H, W) mask is small next to
+    the images, and numpy converts it without thread start-up."""
+    if mask.dtype == dtype:
+        return mask
+    return torch.from_numpy(mask.detach().numpy().astype(_NUMPY_DTYPES[dtype]))
+
+
 def _apply(metric: str, image, target, mask, weights: dict[str, float]) -> torch.Tensor:
     """``weights``: each metric's weight by its argument's name, in ``metric``'s order."""
     dtype = float_dtype("image", image)
     for name, weight in weights.items():
-        if (
-            isinstance(weight, bool)
-            or not isinstance(weight, (int, float))
-            or not math.isfinite(weight)
-        ):
-            raise InvalidArgumentError(f"{name} must be a finite number, got {weight!r}")
+        _check_weight(name, weight)
     for arg, t in (("target", target), ("mask", mask)):
         if t is not None and isinstance(t, torch.Tensor) and t.requires_grad:
             raise InvalidArgumentError(
@@ -108,9 +121,8 @@ def _apply(metric: str, image, target, mask, weights: dict[str, float]) -> torch
             )
     if mask is not None:
         check_tensor("mask", mask)
-        if mask.dtype != dtype and mask.dtype in (torch.bool, torch.float32, torch.float64):
-            # (H, W) is small next to the images; numpy converts without thread start-up
-            mask = torch.from_numpy(mask.detach().numpy().astype(_NUMPY_DTYPES[dtype]))
+        if mask.dtype in (torch.bool, torch.float32, torch.float64):
+            mask = _mask_as(mask, dtype)
     return _MaskedImageComparison.apply(
         metric, image, target, mask, tuple(float(w) for w in weights.values())
     )
@@ -204,12 +216,7 @@ def masked_pixel_l1(
         A 0-dim tensor of ``values``' dtype (0 with zero gradient when no entry has weight).
     """
     dtype = float_dtype("values", values)
-    if (
-        isinstance(weight, bool)
-        or not isinstance(weight, (int, float))
-        or not math.isfinite(weight)
-    ):
-        raise InvalidArgumentError(f"weight must be a finite number, got {weight!r}")
+    _check_weight("weight", weight)
     for arg, t in (("target", target), ("mask", mask)):
         check_tensor(arg, t)
         if t.requires_grad:
@@ -217,8 +224,7 @@ def masked_pixel_l1(
                 f"{arg} must not require grad: only values is differentiated"
             )
     check_tensor("pixels", pixels)
-    if mask.dtype != dtype:
-        mask = torch.from_numpy(mask.detach().numpy().astype(_NUMPY_DTYPES[dtype]))
+    mask = _mask_as(mask, dtype)
     return _PixelL1.apply(
         values.contiguous(),
         pixels.contiguous(),

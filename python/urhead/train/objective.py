@@ -22,10 +22,8 @@ import scipy.sparse as sp
 import torch
 
 from urhead.head.mesh import uniform_laplacian
-from urhead.losses import l1, ssim_l1
+from urhead.losses import l1, pixel_l1, ssim_l1
 from urhead.model.avatar import Render
-from urhead.ops import _reference as reference
-from urhead.ops import masked_pixel_l1
 
 OFFSET_UNIT = 0.1
 """metres: the Gaussian offset regulariser is the mean of (E / OFFSET_UNIT)²."""
@@ -108,10 +106,8 @@ def normal_loss(render: Render, frame, weight: float = 1.0) -> torch.Tensor:
     """Mean ‖N_mesh − N_gt‖₁ over covered pixels inside the mask where N_gt is defined
     (camera axes, both unit), times ``weight`` (inside the kernel, as the photometric
     terms')."""
-    normals, pixels = render.mesh.normals, render.mesh.pixels
-    if normals.dtype in (torch.float32, torch.float64) and frame.normals.dtype == normals.dtype:
-        return masked_pixel_l1(normals, pixels, frame.normals, frame.mask, weight=weight)
-    return weight * reference.masked_pixel_l1(normals, pixels, frame.normals, frame.mask)
+    mesh = render.mesh
+    return pixel_l1(mesh.normals, mesh.pixels, frame.normals, frame.mask, weight=weight)
 
 
 def laplacian_loss(verts: torch.Tensor, laplacian: sp.csr_matrix) -> torch.Tensor:

@@ -193,22 +193,41 @@ fn all_zero_mask_gives_zero_value_and_gradient() {
     assert!(grad.iter().all(|&g| g == 0.0));
 }
 
+/// Independent uniform f32 RGB images and a soft mask (for thread-count checks).
+struct F32Images {
+    x: Vec<f32>,
+    y: Vec<f32>,
+    mask: Vec<f32>,
+    h: usize,
+    w: usize,
+}
+
+impl F32Images {
+    fn new(h: usize, w: usize, seed: u64) -> Self {
+        let mut rng = Rng::new(seed);
+        let y = rng.vec(h * w * 3, 0.0, 1.0);
+        let x = rng.vec(h * w * 3, 0.0, 1.0);
+        let mask = rng.vec(h * w, 0.0, 1.0);
+        Self { x, y, mask, h, w }
+    }
+
+    fn inputs(&self) -> SsimInputs<'_, f32> {
+        SsimInputs {
+            image: &self.x,
+            target: &self.y,
+            mask: Some(&self.mask),
+            height: self.h,
+            width: self.w,
+            channels: 3,
+            image_channels: 3,
+        }
+    }
+}
+
 #[test]
 fn thread_count_does_not_change_bits() {
-    let mut rng = Rng::new(51);
-    let (h, w, c) = (203, 37, 3);
-    let y: Vec<f32> = rng.vec(h * w * c, 0.0, 1.0);
-    let x: Vec<f32> = rng.vec(h * w * c, 0.0, 1.0);
-    let mask: Vec<f32> = rng.vec(h * w, 0.0, 1.0);
-    let inputs = SsimInputs {
-        image: &x,
-        target: &y,
-        mask: Some(&mask),
-        height: h,
-        width: w,
-        channels: c,
-        image_channels: c,
-    };
+    let images = F32Images::new(203, 37, 51);
+    let inputs = images.inputs();
     let run = |threads: usize| on_threads(threads, || masked_ssim_with_grad(&inputs, 1.0).unwrap());
     let (v1, g1) = run(1);
     for threads in [2, 4] {
@@ -353,20 +372,8 @@ fn ssim_and_l1_in_one_pass_are_the_two_kernels_apart() {
     assert_eq!((value_ssim, value_l1), (0.0, 0.0));
     assert!(grad.iter().all(|g| *g == 0.0));
 
-    let mut rng = Rng::new(72);
-    let (h, w, c) = (301, 23, 3);
-    let y: Vec<f32> = rng.vec(h * w * c, 0.0, 1.0);
-    let x: Vec<f32> = rng.vec(h * w * c, 0.0, 1.0);
-    let mask: Vec<f32> = rng.vec(h * w, 0.0, 1.0);
-    let inputs = SsimInputs {
-        image: &x,
-        target: &y,
-        mask: Some(&mask),
-        height: h,
-        width: w,
-        channels: c,
-        image_channels: c,
-    };
+    let images = F32Images::new(301, 23, 72);
+    let inputs = images.inputs();
     check(&inputs, "f32");
     let run = |threads: usize| on_threads(threads, || masked_ssim_l1_with_grad(&inputs, -0.2, 0.64).unwrap());
     let (s1, l1, g1) = run(1);

@@ -77,7 +77,7 @@ fn slope_row<T: Real>(x: &[T], y: &[T], mask: &[T], scale: T, out: &mut [T]) {
     let n = out.len();
     let (x, y, mask) = (&x[..n], &y[..n], &mask[..n]);
     for t in 0..n {
-        out[t] = mask[t] * scale * sign(x[t] - y[t]);
+        out[t] = slope(mask[t], scale, x[t] - y[t]);
     }
 }
 
@@ -87,8 +87,14 @@ pub(super) fn add_slope_row<T: Real>(x: &[T], y: &[T], mask: &[T], scale: T, out
     let n = out.len();
     let (x, y, mask) = (&x[..n], &y[..n], &mask[..n]);
     for t in 0..n {
-        out[t] += mask[t] * scale * sign(x[t] - y[t]);
+        out[t] += slope(mask[t], scale, x[t] - y[t]);
     }
+}
+
+/// One element's L1 subgradient `mask·scale·sign(d)`, the one expression both row passes use.
+#[inline(always)]
+fn slope<T: Real>(mask: T, scale: T, d: T) -> T {
+    mask * scale * sign(d)
 }
 
 /// sign(d) with sign(0) = 0 (and NaN → 0), without branches: a residual's sign is a coin
