@@ -460,3 +460,28 @@ def test_pixel_l1_passes_non_finite_values_on_as_a_non_finite_loss():
         value = masked_pixel_l1(x.requires_grad_(True), pixels, target, mask)
         assert not torch.isfinite(value)
         value.backward()
+
+
+def test_ssim_l1_and_pixel_l1_gradients_match_finite_differences():
+    """float64 central differences (NUMERICS.md, how to test) of the one-pass SSIM + L1 and
+    of the pixel L1, away from the L1's kinks (no residual within 1e-3 of zero)."""
+    image, target = images(9, 8, seed=51)
+    target = torch.where((image - target).abs() < 1e-3, target + 2e-3, target)
+    mask = make_mask("soft", 9, 8)
+
+    def both(x):
+        return masked_ssim_l1(x, target, mask, ssim_weight=-0.2, l1_weight=0.8)
+
+    assert torch.autograd.gradcheck(
+        both, (image.clone().requires_grad_(True),), eps=1e-6, atol=1e-7
+    )
+    values, pixels, target_image, pixel_mask = pixel_case(count=40, seed=53)
+    gt = target_image.reshape(-1, 3)[pixels]
+    values = torch.where((values - gt).abs() < 1e-3, values + 2e-3, values)
+
+    def pixel(v):
+        return masked_pixel_l1(v, pixels, target_image, pixel_mask, weight=0.3)
+
+    assert torch.autograd.gradcheck(
+        pixel, (values.clone().requires_grad_(True),), eps=1e-6, atol=1e-7
+    )
