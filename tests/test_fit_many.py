@@ -252,7 +252,9 @@ def test_more_cpus_per_fit_than_any_node_has_is_refused(subjects, ray_cluster, t
     assert not (tmp_path / "alice").exists()
 
 
-def test_two_subjects_of_one_name_are_refused(tmp_path, capsys):
+def test_two_subjects_of_one_name_are_refused(tmp_path, monkeypatch, capsys):
+    """Refused before Ray is looked for: the arguments' mistake is named without it too."""
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray raises ImportError
     a, b = tmp_path / "a" / "same", tmp_path / "b" / "same"
     assert main(["fit-many", str(a), str(b), "--out", str(tmp_path / "root")]) == 1
     assert "would both write ROOT/same" in capsys.readouterr().err

@@ -60,6 +60,12 @@ def add_parser(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    # The arguments first: a mistake in them is named whether or not Ray is installed.
+    if args.cpus_per_fit < 1:
+        raise ValueError(f"--cpus-per-fit must be at least 1, got {args.cpus_per_fit}")
+    config = fit_config(args)
+    subjects = [s.absolute() for s in args.subjects]  # not resolve(): keep link names
+    _check_distinct_names(subjects)
     try:
         import ray
     except ImportError:
@@ -69,11 +75,6 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 1
-    if args.cpus_per_fit < 1:
-        raise ValueError(f"--cpus-per-fit must be at least 1, got {args.cpus_per_fit}")
-    config = fit_config(args)
-    subjects = [s.absolute() for s in args.subjects]  # not resolve(): keep link names
-    _check_distinct_names(subjects)
     root = args.out.absolute()
     root.mkdir(parents=True, exist_ok=True)
     summary = Summary(root, subjects, config)
