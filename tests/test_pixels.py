@@ -37,28 +37,44 @@ def _case(h=37, w=301, c=4, dtype=F64, seed=0):
     return values, pixels, background, (h, w)
 
 
-def _run(fn, case, weights):
+def _run(fn, case, weights, fill=None):
     values, pixels, background, size = case
+    if fill is not None:  # the rows are the first C − K channels
+        values = values[:, : background.shape[0] - fill.shape[0]]
     leaves = [values.clone().requires_grad_(True), background.clone().requires_grad_(True)]
-    out = fn(leaves[0], pixels, leaves[1], size)
+    out = fn(leaves[0], pixels, leaves[1], size, fill=fill)
     (out * weights).sum().backward()
     return [out.detach()] + [x.grad for x in leaves]
 
 
-@pytest.mark.parametrize("channels", [1, 4])
-def test_scatter_matches_reference_float64(channels):
+@pytest.mark.parametrize(
+    "channels, fill", [(1, None), (4, None), (4, [1.0]), (5, [-2.5, float("inf")])]
+)
+def test_scatter_matches_reference_float64(channels, fill):
     case = _case(c=channels)
+    fill = None if fill is None else torch.tensor(fill, dtype=F64)
     weights = torch.randn(37, 301, channels, generator=torch.Generator().manual_seed(2), dtype=F64)
-    ours, ref = _run(scatter_pixels, case, weights), _run(_reference.scatter_pixels, case, weights)
+    ours = _run(scatter_pixels, case, weights, fill)
+    ref = _run(_reference.scatter_pixels, case, weights, fill)
     for a, b in zip(ours, ref, strict=True):
-        assert a.shape == b.shape and torch.allclose(a, b, rtol=1e-14, atol=1e-12)
+        assert a.shape == b.shape
+        assert torch.allclose(a, b, rtol=1e-14, atol=1e-12, equal_nan=True)
     assert torch.equal(ours[0], ref[0]) and torch.equal(ours[1], ref[1]), "copies are exact"
+    if fill is not None:  # the listed pixels' tail is the fill, the rest the background
+        image = ours[0].reshape(-1, channels)
+        pixels, tail = case[1], -fill.shape[0]
+        assert torch.equal(image[pixels, tail:], fill.expand(pixels.shape[0], -1))
+        assert ours[1].shape == (pixels.shape[0], channels + tail)
 
 
-def test_scatter_gradcheck_float64():
+@pytest.mark.parametrize("fill", [None, [1.0]])
+def test_scatter_gradcheck_float64(fill):
     values, pixels, background, size = _case(5, 7, 3, seed=3)
+    if fill is not None:
+        fill = torch.tensor(fill, dtype=F64)
+        values = values[:, :2].clone()
     assert torch.autograd.gradcheck(
-        lambda v, b: scatter_pixels(v, pixels, b, size),
+        lambda v, b: scatter_pixels(v, pixels, b, size, fill=fill),
         (values.requires_grad_(True), background.requires_grad_(True)),
     )
 
@@ -96,14 +112,26 @@ def test_bad_input_is_a_named_error(stability):
         (InvalidArgumentError, "pixels", (values[:1], torch.tensor([37 * 301]), background, size)),
         (InvalidArgumentError, "pixels", (values[:1], torch.tensor([-1]), background, size)),
     ]
-    for error, name, args in bad:
+    ones = torch.ones(1)
+    bad_fill = [  # values (P, 4) and a fill make 5 channels, not the background's 4
+        (ShapeError, "background", (values, pixels, background, size, ones)),
+        (DTypeError, "fill", (values[:, :3], pixels, background, size, ones.double())),
+        (ShapeError, "fill", (values[:, :3], pixels, background, size, ones[0])),
+        (
+            InvalidArgumentError,
+            "fill",
+            (values[:, :3], pixels, background, size, torch.ones(1, requires_grad=True)),
+        ),
+        (InvalidArgumentError, "fill", (values[:, :0], pixels, background, size, torch.ones(4))),
+    ]
+    for error, name, args in bad + bad_fill:
         with pytest.raises(error, match=name):
             scatter_pixels(*args)
     with pytest.raises(ShapeError, match="tri_id"):
         covered_pixels(torch.zeros(3, dtype=torch.int32))
     with pytest.raises(DTypeError, match="tri_id"):
         covered_pixels(torch.zeros(3, 3, dtype=torch.int64))
-    stability.checked(26, "scatter_pixels, covered_pixels: bad lists, shapes, dtypes", 11)
+    stability.checked(26, "scatter_pixels, covered_pixels: bad lists, shapes, dtypes, fills", 16)
 
 
 def test_mesh_branch_image_is_the_torch_expression():
@@ -123,3 +151,5 @@ def test_mesh_branch_image_is_the_torch_expression():
     expected = bg.repeat(48 * 48, 1)
     expected[(raster.tri_id.reshape(-1) >= 0).nonzero()[:, 0]] = rgba
     assert torch.equal(scatter_pixels(rgba, pixels, bg, (48, 48)), expected.reshape(48, 48, 4))
+    filled = scatter_pixels(rgb, pixels, bg, (48, 48), fill=rgb.new_ones(1))  # as the avatar
+    assert torch.equal(filled, expected.reshape(48, 48, 4))

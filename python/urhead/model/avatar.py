@@ -355,9 +355,8 @@ class Avatar:
             world = torch.einsum("ji,pjk->pik", view, rotation)  # Vᵀ·(V·R)
             rgb = _shading_gain(rgb, pixel_maps[:, first : first + SHADING_FEATURES], world)
         # The covered pixels (alpha 1) over the background (alpha 0).
-        rgba = torch.cat([rgb, rgb.new_ones(rgb.shape[0], 1)], 1)
         background = torch.cat([self.background, self.background.new_zeros(1)])
-        image = scatter_pixels(rgba, pixels, background, (h, w))
+        image = scatter_pixels(rgb, pixels, background, (h, w), fill=rgb.new_ones(1))
         shaded = antialias(image, raster, displaced, t.faces, camera, t.topology)
         normals = None
         if want_normals:

@@ -678,8 +678,10 @@ def covered_pixels(tri_id):
     return (tri_id.reshape(-1) >= 0).nonzero()[:, 0]
 
 
-def scatter_pixels(values, pixels, background, size):
+def scatter_pixels(values, pixels, background, size, fill=None):
     """Reference of :func:`urhead.ops.scatter_pixels`."""
+    if fill is not None:
+        values = torch.cat([values, fill.expand(values.shape[0], -1)], 1)
     flat = background.expand(size[0] * size[1], -1).index_put((pixels,), values)
     return flat.reshape(*size, -1)
 

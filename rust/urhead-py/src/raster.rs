@@ -563,21 +563,27 @@ fn scatter_pixels_forward_typed<'py, T: Element + Real>(
     py: Python<'py>,
     values: Arr<'py, T>,
     pixels: Arr<'py, i64>,
+    fill: Arr<'py, T>,
     background: Arr<'py, T>,
     (height, width): (usize, usize),
     num_threads: usize,
 ) -> PyResult<Bound<'py, numpy::PyArrayDyn<T>>> {
-    let c = shape(&values, "values", 2, "(P, C)")?[1];
+    shape(&values, "values", 2, "(P, C − K)")?;
     shape(&pixels, "pixels", 1, "(P,) int64")?;
-    shape(&background, "background", 1, "(C,)")?;
+    shape(&fill, "fill", 1, "(K,)")?;
+    let c = shape(&background, "background", 1, "(C,)")?[0];
     let inputs = ScatterInputs {
         pixels: data(&pixels, "pixels")?,
         pixel_count: height * width,
         channels: c,
     };
-    let (v, b) = (data(&values, "values")?, data(&background, "background")?);
+    let (v, f, b) = (
+        data(&values, "values")?,
+        data(&fill, "fill")?,
+        data(&background, "background")?,
+    );
     let out = py
-        .allow_threads(|| with_threads(num_threads, || raster::scatter_pixels_forward(&inputs, v, b)))
+        .allow_threads(|| with_threads(num_threads, || raster::scatter_pixels_forward(&inputs, v, f, b)))
         .map_err(py_err)?;
     array(py, out, &[height, width, c])
 }
@@ -586,6 +592,7 @@ fn scatter_pixels_backward_typed<'py, T: Element + Real>(
     py: Python<'py>,
     pixels: Arr<'py, i64>,
     v_image: Arr<'py, T>,
+    fill: usize,
     needs: (bool, bool),
     num_threads: usize,
 ) -> PyResult<Bound<'py, PyTuple>> {
@@ -600,14 +607,14 @@ fn scatter_pixels_backward_typed<'py, T: Element + Real>(
     let out = py
         .allow_threads(|| {
             with_threads(num_threads, || {
-                raster::scatter_pixels_backward(&inputs, g, needs.0, needs.1)
+                raster::scatter_pixels_backward(&inputs, g, fill, needs.0, needs.1)
             })
         })
         .map_err(py_err)?;
     PyTuple::new(
         py,
         [
-            optional(py, out.v_values, &[p, dims[2]])?,
+            optional(py, out.v_values, &[p, dims[2].saturating_sub(fill)])?,
             optional(py, out.v_background, &[dims[2]])?,
         ],
     )
@@ -629,12 +636,14 @@ pub fn covered_pixels<'py>(
     array(py, out, &[n])
 }
 
-/// scatter_pixels → (H, W, C): `background (C,)` with `values (P, C)` at `pixels (P,)`.
+/// scatter_pixels → (H, W, C): `background (C,)` with `values (P, C − K)` then `fill (K,)`
+/// at `pixels (P,)`.
 #[pyfunction]
 pub fn scatter_pixels_forward<'py>(
     py: Python<'py>,
     values: &Bound<'py, PyAny>,
     pixels: Arr<'py, i64>,
+    fill: &Bound<'py, PyAny>,
     background: &Bound<'py, PyAny>,
     size: (usize, usize),
     num_threads: usize,
@@ -643,6 +652,7 @@ pub fn scatter_pixels_forward<'py>(
         py,
         values.extract()?,
         pixels,
+        fill.extract()?,
         background.extract()?,
         size,
         num_threads,
@@ -650,12 +660,14 @@ pub fn scatter_pixels_forward<'py>(
     .map(Bound::into_any))
 }
 
-/// scatter_pixels backward → (v_values (P, C), v_background (C,)), None where not requested.
+/// scatter_pixels backward → (v_values (P, C − K), v_background (C,)), None where not
+/// requested; `fill` is the forward's `K`.
 #[pyfunction]
 pub fn scatter_pixels_backward<'py>(
     py: Python<'py>,
     pixels: Arr<'py, i64>,
     v_image: &Bound<'py, PyAny>,
+    fill: usize,
     needs: (bool, bool),
     num_threads: usize,
 ) -> PyResult<Bound<'py, PyTuple>> {
@@ -663,6 +675,7 @@ pub fn scatter_pixels_backward<'py>(
         py,
         pixels,
         v_image.extract()?,
+        fill,
         needs,
         num_threads,
     ))

@@ -6,7 +6,10 @@
 //! - [`scatter_pixels_forward`]: an image filled with a background value, with listed
 //!   pixels set to their rows (torch's `repeat` + `index_put_` are two serial passes over
 //!   the image), and its adjoint: the rows' gradient is the image gradient gathered at the
-//!   listed pixels, the background's the image gradient summed over the others.
+//!   listed pixels, the background's the image gradient summed over the others. The rows
+//!   may be narrower than the image, its last channels at listed pixels a constant `fill`
+//!   (the mesh's colour with alpha 1: no concatenated `(P, 4)` copy, nor its gradient's
+//!   slice).
 //!
 //! Work is cut into fixed chunks of pixels and partial sums are merged in chunk order, so
 //! results are the same bits for any thread count.
@@ -90,6 +93,20 @@ impl ScatterInputs<'_> {
         Ok(self.pixels.len())
     }
 
+    /// The rows' width `C − K` for a constant tail of `fill` channels (`K < C`).
+    fn value_channels(&self, fill: usize) -> Result<usize> {
+        if fill >= self.channels {
+            return Err(Error::Invalid {
+                arg: "fill",
+                reason: format!(
+                    "{fill} channels leave none for the values of a {}-channel image",
+                    self.channels
+                ),
+            });
+        }
+        Ok(self.channels - fill)
+    }
+
     /// The entries of `pixels` that fall in pixel chunk `chunk`, and the first one's index.
     fn listed_in(&self, chunk: usize) -> (usize, &[i64]) {
         let (start, end) = ((chunk * CHUNK) as i64, ((chunk + 1) * CHUNK) as i64);
@@ -99,16 +116,19 @@ impl ScatterInputs<'_> {
     }
 }
 
-/// `(H·W, C)`: `background` everywhere, `values[i]` at pixel `pixels[i]`. `values (P, C)`
-/// and `background (C,)` are data (non-finite values pass through).
+/// `(H·W, C)`: `background` everywhere; at pixel `pixels[i]`, `values[i]` then `fill`.
+/// `values (P, C − K)`, `fill (K,)` and `background (C,)` are data (non-finite values pass
+/// through).
 pub fn scatter_pixels_forward<T: Real>(
     inputs: &ScatterInputs<'_>,
     values: &[T],
+    fill: &[T],
     background: &[T],
 ) -> Result<Vec<T>> {
     let p = inputs.validate()?;
     let c = inputs.channels;
-    check_len("values", values, p * c, &format!("(P, C) = ({p}, {c})"))?;
+    let w = inputs.value_channels(fill.len())?;
+    check_len("values", values, p * w, &format!("(P, C − K) = ({p}, {w})"))?;
     check_len("background", background, c, &format!("(C,) = ({c},)"))?;
     let mut image = zeroed("scattered image (H, W, C)", inputs.pixel_count * c)?;
     // One chunk of background, copied in one go (per pixel, a `c`-long copy is a call).
@@ -121,11 +141,9 @@ pub fn scatter_pixels_forward<T: Real>(
             let first = chunk * CHUNK;
             let (start, listed) = inputs.listed_in(chunk);
             for (i, &q) in listed.iter().enumerate() {
-                copy_short(
-                    &mut out[(q as usize - first) * c..],
-                    &values[(start + i) * c..],
-                    c,
-                );
+                let row = &mut out[(q as usize - first) * c..];
+                copy_short(row, &values[(start + i) * w..], w);
+                copy_short(&mut row[w..], fill, fill.len());
             }
         });
     Ok(image)
@@ -134,32 +152,35 @@ pub fn scatter_pixels_forward<T: Real>(
 /// The gradients of [`scatter_pixels_backward`], `None` where not asked for.
 #[derive(Debug, Clone)]
 pub struct ScatterGrads<T> {
-    /// `(P, C)`: the image gradient at the listed pixels.
+    /// `(P, C − K)`: the image gradient at the listed pixels, less the fill's channels.
     pub v_values: Option<Vec<T>>,
     /// `(C,)`: the image gradient summed over the pixels not listed.
     pub v_background: Option<Vec<T>>,
 }
 
 /// Adjoint of [`scatter_pixels_forward`] given the image gradient `v_image (H·W, C)`
-/// (data, as the forward's values: non-finite values pass through).
+/// (data, as the forward's values: non-finite values pass through) and the forward's
+/// `fill` length `K` (the constant channels pass no gradient).
 pub fn scatter_pixels_backward<T: Real>(
     inputs: &ScatterInputs<'_>,
     v_image: &[T],
+    fill: usize,
     need_values: bool,
     need_background: bool,
 ) -> Result<ScatterGrads<T>> {
     let p = inputs.validate()?;
     let c = inputs.channels;
+    let w = inputs.value_channels(fill)?;
     let n = inputs.pixel_count;
     check_len("v_image", v_image, n * c, &format!("(H·W, C) = ({n}, {c})"))?;
     let v_values = need_values
         .then(|| -> Result<Vec<T>> {
-            let mut rows = zeroed("scatter values gradient (P, C)", p * c)?;
-            rows.par_chunks_mut(CHUNK * c)
+            let mut rows = zeroed("scatter values gradient (P, C − K)", p * w)?;
+            rows.par_chunks_mut(CHUNK * w)
                 .zip(inputs.pixels.par_chunks(CHUNK))
                 .for_each(|(rows, pixels)| {
-                    for (row, &q) in rows.chunks_exact_mut(c).zip(pixels) {
-                        copy_short(row, &v_image[q as usize * c..], c);
+                    for (row, &q) in rows.chunks_exact_mut(w).zip(pixels) {
+                        copy_short(row, &v_image[q as usize * c..], w);
                     }
                 });
             Ok(rows)
@@ -225,7 +246,7 @@ mod tests {
             pixel_count: n,
             channels: c,
         };
-        let image = scatter_pixels_forward(&inputs, &values, &background).unwrap();
+        let image = scatter_pixels_forward(&inputs, &values, &[], &background).unwrap();
         let mut expected: Vec<f64> = background.repeat(n);
         for (row, &q) in pixels.iter().enumerate() {
             let q = q as usize;
@@ -234,7 +255,7 @@ mod tests {
         assert_eq!(image, expected);
 
         let v_image: Vec<f64> = (0..n * c).map(|i| ((i * 37) % 101) as f64 - 50.0).collect();
-        let g = scatter_pixels_backward(&inputs, &v_image, true, true).unwrap();
+        let g = scatter_pixels_backward(&inputs, &v_image, 0, true, true).unwrap();
         let v_values: Vec<f64> = pixels
             .iter()
             .flat_map(|&q| v_image[q as usize * c..(q as usize + 1) * c].to_vec())
@@ -250,6 +271,42 @@ mod tests {
     }
 
     #[test]
+    fn a_constant_fill_is_the_rows_widened_by_it() {
+        // The rows (P, 3) with fill [1] against the rows (P, 4) with a column of ones: the
+        // same image; the gradient is the wide rows' without their last column.
+        let (n, c) = (2 * CHUNK + 9, 4);
+        let pixels: Vec<i64> = (0..n as i64).filter(|i| i % 4 != 2).collect();
+        let narrow: Vec<f32> = (0..pixels.len() * 3).map(|i| i as f32 * 0.25 - 7.0).collect();
+        let wide: Vec<f32> = narrow
+            .chunks_exact(3)
+            .flat_map(|r| [r[0], r[1], r[2], 1.0])
+            .collect();
+        let background = [0.5f32, 0.25, -1.0, 0.0];
+        let inputs = ScatterInputs {
+            pixels: &pixels,
+            pixel_count: n,
+            channels: c,
+        };
+        let filled = scatter_pixels_forward(&inputs, &narrow, &[1.0], &background).unwrap();
+        assert_eq!(
+            filled,
+            scatter_pixels_forward(&inputs, &wide, &[], &background).unwrap()
+        );
+
+        let v_image: Vec<f32> = (0..n * c).map(|i| ((i * 29) % 97) as f32 - 48.0).collect();
+        let narrow_grad = scatter_pixels_backward(&inputs, &v_image, 1, true, true).unwrap();
+        let wide_grad = scatter_pixels_backward(&inputs, &v_image, 0, true, true).unwrap();
+        let expected: Vec<f32> = wide_grad
+            .v_values
+            .unwrap()
+            .chunks_exact(4)
+            .flat_map(|r| r[..3].to_vec())
+            .collect();
+        assert_eq!(narrow_grad.v_values.unwrap(), expected);
+        assert_eq!(narrow_grad.v_background, wide_grad.v_background);
+    }
+
+    #[test]
     fn rejects_lists_that_are_not_strictly_increasing_or_out_of_range() {
         let check = |pixels: &[i64]| {
             let inputs = ScatterInputs {
@@ -257,7 +314,7 @@ mod tests {
                 pixel_count: 10,
                 channels: 1,
             };
-            scatter_pixels_forward(&inputs, &vec![0.0f32; pixels.len()], &[0.0])
+            scatter_pixels_forward(&inputs, &vec![0.0f32; pixels.len()], &[], &[0.0])
         };
         assert!(check(&[0, 3, 9]).is_ok());
         for bad in [&[0, 3, 3][..], &[4, 2], &[-1, 2], &[2, 10]] {
@@ -273,8 +330,18 @@ mod tests {
             channels: 2,
         };
         assert!(matches!(
-            scatter_pixels_forward(&inputs, &[0.0f32; 3], &[0.0, 0.0]),
+            scatter_pixels_forward(&inputs, &[0.0f32; 3], &[], &[0.0, 0.0]),
             Err(Error::Shape { arg: "values", .. })
         ));
+        for fill in [&[1.0f32, 2.0][..], &[1.0, 2.0, 3.0]] {
+            assert!(matches!(
+                scatter_pixels_forward(&inputs, &[], fill, &[0.0, 0.0]),
+                Err(Error::Invalid { arg: "fill", .. })
+            ));
+            assert!(matches!(
+                scatter_pixels_backward(&inputs, &[0.0f32; 20], fill.len(), true, true),
+                Err(Error::Invalid { arg: "fill", .. })
+            ));
+        }
     }
 }
