@@ -11,7 +11,7 @@
 //! that thread at another thread count, use the shared pools as before. Kernels cut their
 //! work the same whichever thread runs it, so results are unchanged.
 
-use std::cell::RefCell;
+use std::cell::Cell;
 use std::sync::{Arc, Mutex};
 
 use rayon::{ThreadPool, ThreadPoolBuilder};
@@ -27,8 +27,10 @@ struct Pools {
 static POOLS: Mutex<Option<Pools>> = Mutex::new(None);
 
 thread_local! {
-    /// The pool this thread is a member of: `(process id, thread count, pool)`.
-    static MEMBER_OF: RefCell<Option<(u32, usize, Arc<ThreadPool>)>> = const { RefCell::new(None) };
+    /// The pool this thread is a member of: `(process id, thread count, pool)`. Leaked: it
+    /// lives as long as the process (rayon never frees a pool its caller joined), and no
+    /// thread-local destructor has to drop it at exit.
+    static MEMBER_OF: Cell<Option<(u32, usize, &'static ThreadPool)>> = const { Cell::new(None) };
 }
 
 fn pools(guard: &mut Option<Pools>, pid: u32) -> &mut Pools {
@@ -67,34 +69,38 @@ fn shared_pool(pools: &mut Pools, num_threads: usize) -> Arc<ThreadPool> {
     p
 }
 
-/// The pool a call from this thread runs on.
-fn pool(num_threads: usize) -> Arc<ThreadPool> {
+/// The pool a call from this thread runs on, if it is a member of one.
+fn member_pool(num_threads: usize) -> Option<&'static ThreadPool> {
     let pid = std::process::id();
-    let member = MEMBER_OF.with_borrow(|m| {
-        m.as_ref()
-            .filter(|(p, n, _)| *p == pid && *n == num_threads)
-            .map(|(_, _, pool)| pool.clone())
-    });
-    if let Some(pool) = member {
-        return pool;
+    if let Some((p, n, pool)) = MEMBER_OF.get() {
+        return (p == pid && n == num_threads).then_some(pool);
     }
     // A poisoned lock only means another thread panicked while holding it; the cache is
     // still consistent (entries are inserted whole).
     let mut guard = POOLS.lock().unwrap_or_else(|p| p.into_inner());
     let pools = pools(&mut guard, pid);
-    if !pools.member_taken && MEMBER_OF.with_borrow(Option::is_none) {
-        pools.member_taken = true;
-        // This thread is worker 0; the pool (and its registry) lives as long as the process.
-        if let Ok(pool) = builder(num_threads).use_current_thread().build() {
-            let pool = Arc::new(pool);
-            MEMBER_OF.set(Some((pid, num_threads, pool.clone())));
-            return pool;
-        }
+    if pools.member_taken {
+        return None;
     }
-    shared_pool(pools, num_threads)
+    pools.member_taken = true;
+    // This thread becomes worker 0 (an error: it already works for another pool).
+    let pool: &'static ThreadPool =
+        Box::leak(Box::new(builder(num_threads).use_current_thread().build().ok()?));
+    MEMBER_OF.set(Some((pid, num_threads, pool)));
+    Some(pool)
+}
+
+/// The shared pool of `num_threads` workers, for calls from any thread.
+fn shared(num_threads: usize) -> Arc<ThreadPool> {
+    let mut guard = POOLS.lock().unwrap_or_else(|p| p.into_inner());
+    shared_pool(pools(&mut guard, std::process::id()), num_threads)
 }
 
 /// Runs `f` on a pool of `num_threads` workers (at least one).
 pub fn with_threads<R: Send>(num_threads: usize, f: impl FnOnce() -> R + Send) -> R {
-    pool(num_threads.max(1)).install(f)
+    let n = num_threads.max(1);
+    match member_pool(n) {
+        Some(pool) => pool.install(f),
+        None => shared(n).install(f),
+    }
 }
