@@ -100,6 +100,16 @@ def _check_weight(name: str, weight) -> None:
         raise InvalidArgumentError(f"{name} must be a finite number, got {weight!r}")
 
 
+def _check_constants(differentiated: str, tensors: dict, note: str = "") -> None:
+    """Each of ``tensors`` (by argument name; None allowed) must not require grad: only
+    ``differentiated`` gets a gradient."""
+    for arg, t in tensors.items():
+        if isinstance(t, torch.Tensor) and t.requires_grad:
+            raise InvalidArgumentError(
+                f"{arg} must not require grad: only {differentiated} is differentiated{note}"
+            )
+
+
 def _mask_as(mask: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
     """``mask`` (float or bool) in the kernel's ``dtype``; an (H, W) mask is small next to
     the images, and numpy converts it without thread start-up."""
@@ -113,12 +123,11 @@ def _apply(metric: str, image, target, mask, weights: dict[str, float]) -> torch
     dtype = float_dtype("image", image)
     for name, weight in weights.items():
         _check_weight(name, weight)
-    for arg, t in (("target", target), ("mask", mask)):
-        if t is not None and isinstance(t, torch.Tensor) and t.requires_grad:
-            raise InvalidArgumentError(
-                f"{arg} must not require grad: only image is differentiated "
-                "(urhead.losses falls back to plain torch, differentiable in every input)"
-            )
+    _check_constants(
+        "image",
+        {"target": target, "mask": mask},
+        " (urhead.losses falls back to plain torch, differentiable in every input)",
+    )
     if mask is not None:
         check_tensor("mask", mask)
         if mask.dtype in (torch.bool, torch.float32, torch.float64):
@@ -217,12 +226,9 @@ def masked_pixel_l1(
     """
     dtype = float_dtype("values", values)
     _check_weight("weight", weight)
-    for arg, t in (("target", target), ("mask", mask)):
-        check_tensor(arg, t)
-        if t.requires_grad:
-            raise InvalidArgumentError(
-                f"{arg} must not require grad: only values is differentiated"
-            )
+    check_tensor("target", target)
+    check_tensor("mask", mask)
+    _check_constants("values", {"target": target, "mask": mask})
     check_tensor("pixels", pixels)
     mask = _mask_as(mask, dtype)
     return _PixelL1.apply(

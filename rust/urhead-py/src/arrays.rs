@@ -15,6 +15,14 @@ pub fn data<'a, T: Element>(arr: &'a PyReadonlyArrayDyn<'_, T>, arg: &str) -> Py
     })
 }
 
+/// The contiguous data of an optional array, or an error naming `arg`.
+pub fn optional_data<'a, T: Element>(
+    arr: &'a Option<PyReadonlyArrayDyn<'_, T>>,
+    arg: &str,
+) -> PyResult<Option<&'a [T]>> {
+    arr.as_ref().map(|a| data(a, arg)).transpose()
+}
+
 /// The contiguous data of `arr` to write in place, or an error naming `arg`.
 pub fn data_mut<'a, T: Element>(arr: &'a mut PyReadwriteArrayDyn<'_, T>, arg: &str) -> PyResult<&'a mut [T]> {
     arr.as_slice_mut().map_err(|_| {

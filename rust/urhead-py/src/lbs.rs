@@ -7,7 +7,7 @@ use pyo3::types::PyTuple;
 use urhead_core::lbs::{self as core, LbsGradOutputs, LbsInputs, LbsModel, LbsNeeds, LbsSaved};
 use urhead_core::Real;
 
-use crate::arrays::{array, data, optional, optional_array, shape, with_float_type};
+use crate::arrays::{array, data, optional, optional_array, optional_data, shape, with_float_type};
 use crate::errors::{py_err, ShapeError};
 use crate::pool::with_threads;
 
@@ -120,9 +120,9 @@ fn backward<'py, T: Element + Real>(
         rest_joints: data(&saved.2, "rest_joints")?,
     };
     let grads_in = LbsGradOutputs {
-        v_verts: grads.0.as_ref().map(|a| data(a, "v_verts")).transpose()?,
-        v_joints: grads.1.as_ref().map(|a| data(a, "v_joints")).transpose()?,
-        v_rotations: grads.2.as_ref().map(|a| data(a, "v_rotations")).transpose()?,
+        v_verts: optional_data(&grads.0, "v_verts")?,
+        v_joints: optional_data(&grads.1, "v_joints")?,
+        v_rotations: optional_data(&grads.2, "v_rotations")?,
     };
     let needs = LbsNeeds {
         betas: needs.0,

@@ -9,7 +9,7 @@ use urhead_core::lift::{lift_backward, lift_forward, LiftGradOutputs, LiftInputs
 use urhead_core::lift_tail::{join_tail_grad, split_tail, TailGrads, TailLayout};
 use urhead_core::Real;
 
-use crate::arrays::{array, data, optional, optional_array, with_float_type};
+use crate::arrays::{array, data, optional, optional_array, optional_data, with_float_type};
 use crate::errors::{py_err, ShapeError};
 use crate::pool::with_threads;
 
@@ -112,9 +112,9 @@ fn backward<'py, T: Element + Real>(
     let (inputs, n, v) = arrays.inputs()?;
     let [v_means, v_normals, v_quats] = &grads;
     let grads_in = LiftGradOutputs {
-        v_means: v_means.as_ref().map(|a| data(a, "v_means")).transpose()?,
-        v_normals: v_normals.as_ref().map(|a| data(a, "v_normals")).transpose()?,
-        v_quats: v_quats.as_ref().map(|a| data(a, "v_quats")).transpose()?,
+        v_means: optional_data(v_means, "v_means")?,
+        v_normals: optional_data(v_normals, "v_normals")?,
+        v_quats: optional_data(v_quats, "v_quats")?,
     };
     let needs = LiftNeeds {
         verts: needs.0,
@@ -179,11 +179,6 @@ pub fn lift_gaussians_backward<'py>(
         let grads = [optional_array(v_means)?, optional_array(v_normals)?, optional_array(v_quats)?];
         backward(py, arrays, grads, needs, num_threads)
     })
-}
-
-/// The contiguous data of an optional array.
-fn optional_data<'a, T: Element>(arr: &'a Option<Arr<'_, T>>, arg: &str) -> PyResult<Option<&'a [T]>> {
-    arr.as_ref().map(|a| data(a, arg)).transpose()
 }
 
 /// The lift's maps split out of the Gaussians' map rows `(N, C)`, whose tail starts at

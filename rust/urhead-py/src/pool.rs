@@ -12,13 +12,17 @@
 //! work the same whichever thread runs it, so results are unchanged.
 
 use std::cell::Cell;
-use std::sync::{Arc, Mutex};
+use std::sync::Mutex;
 
 use rayon::{ThreadPool, ThreadPoolBuilder};
 
+/// Pools live as long as the process (leaked): a call borrows one without a reference count,
+/// and nothing drops a pool a thread still belongs to.
+type Pool = &'static ThreadPool;
+
 struct Pools {
     pid: u32,
-    by_size: Vec<(usize, Arc<ThreadPool>)>,
+    by_size: Vec<(usize, Pool)>,
     /// Whether a thread of this process has been made a member of a pool (see
     /// [`with_threads`]); at most one is, so such pools never accumulate.
     member_taken: bool,
@@ -27,26 +31,8 @@ struct Pools {
 static POOLS: Mutex<Option<Pools>> = Mutex::new(None);
 
 thread_local! {
-    /// The pool this thread is a member of: `(process id, thread count, pool)`. Leaked: it
-    /// lives as long as the process (rayon never frees a pool its caller joined), and no
-    /// thread-local destructor has to drop it at exit.
-    static MEMBER_OF: Cell<Option<(u32, usize, &'static ThreadPool)>> = const { Cell::new(None) };
-}
-
-fn pools(guard: &mut Option<Pools>, pid: u32) -> &mut Pools {
-    if guard.as_ref().is_none_or(|p| p.pid != pid) {
-        // Stale pools from the parent: their threads do not exist here. Leak rather than
-        // drop, since dropping would try to wake threads that were never forked.
-        if let Some(stale) = guard.take() {
-            std::mem::forget(stale);
-        }
-        *guard = Some(Pools {
-            pid,
-            by_size: Vec::new(),
-            member_taken: false,
-        });
-    }
-    guard.as_mut().expect("initialised above")
+    /// The pool this thread is a member of: `(process id, thread count, pool)`.
+    static MEMBER_OF: Cell<Option<(u32, usize, Pool)>> = const { Cell::new(None) };
 }
 
 fn builder(num_threads: usize) -> ThreadPoolBuilder {
@@ -55,52 +41,49 @@ fn builder(num_threads: usize) -> ThreadPoolBuilder {
         .thread_name(|i| format!("urhead-{i}"))
 }
 
-/// The shared pool of `num_threads` workers.
-fn shared_pool(pools: &mut Pools, num_threads: usize) -> Arc<ThreadPool> {
-    if let Some((_, p)) = pools.by_size.iter().find(|(n, _)| *n == num_threads) {
-        return p.clone();
-    }
-    let p = Arc::new(
-        builder(num_threads)
-            .build()
-            .expect("spawning rayon worker threads"),
-    );
-    pools.by_size.push((num_threads, p.clone()));
-    p
-}
-
-/// The pool a call from this thread runs on, if it is a member of one.
-fn member_pool(num_threads: usize) -> Option<&'static ThreadPool> {
+/// The pool a call from this thread with `num_threads` runs on.
+fn pool(num_threads: usize) -> Pool {
     let pid = std::process::id();
-    if let Some((p, n, pool)) = MEMBER_OF.get() {
-        return (p == pid && n == num_threads).then_some(pool);
+    let member = MEMBER_OF.get();
+    if let Some((p, n, pool)) = member {
+        if p == pid && n == num_threads {
+            return pool; // no lock on the member's calls
+        }
     }
     // A poisoned lock only means another thread panicked while holding it; the cache is
     // still consistent (entries are inserted whole).
     let mut guard = POOLS.lock().unwrap_or_else(|p| p.into_inner());
-    let pools = pools(&mut guard, pid);
-    if pools.member_taken {
-        return None;
+    if guard.as_ref().is_none_or(|p| p.pid != pid) {
+        // A forked child: the parent's pools (leaked) have no threads here.
+        *guard = Some(Pools {
+            pid,
+            by_size: Vec::new(),
+            member_taken: false,
+        });
     }
-    pools.member_taken = true;
-    // This thread becomes worker 0 (an error: it already works for another pool).
-    let pool: &'static ThreadPool =
-        Box::leak(Box::new(builder(num_threads).use_current_thread().build().ok()?));
-    MEMBER_OF.set(Some((pid, num_threads, pool)));
-    Some(pool)
-}
-
-/// The shared pool of `num_threads` workers, for calls from any thread.
-fn shared(num_threads: usize) -> Arc<ThreadPool> {
-    let mut guard = POOLS.lock().unwrap_or_else(|p| p.into_inner());
-    shared_pool(pools(&mut guard, std::process::id()), num_threads)
+    let pools = guard.as_mut().expect("initialised above");
+    if member.is_none() && !pools.member_taken {
+        pools.member_taken = true;
+        // This thread becomes worker 0 (an error: it already works for another pool).
+        if let Ok(pool) = builder(num_threads).use_current_thread().build() {
+            let pool: Pool = Box::leak(Box::new(pool));
+            MEMBER_OF.set(Some((pid, num_threads, pool)));
+            return pool;
+        }
+    }
+    if let Some(&(_, pool)) = pools.by_size.iter().find(|(n, _)| *n == num_threads) {
+        return pool;
+    }
+    let pool: Pool = Box::leak(Box::new(
+        builder(num_threads)
+            .build()
+            .expect("spawning rayon worker threads"),
+    ));
+    pools.by_size.push((num_threads, pool));
+    pool
 }
 
 /// Runs `f` on a pool of `num_threads` workers (at least one).
 pub fn with_threads<R: Send>(num_threads: usize, f: impl FnOnce() -> R + Send) -> R {
-    let n = num_threads.max(1);
-    match member_pool(n) {
-        Some(pool) => pool.install(f),
-        None => shared(n).install(f),
-    }
+    pool(num_threads.max(1)).install(f)
 }

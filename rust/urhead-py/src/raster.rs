@@ -7,7 +7,7 @@ use pyo3::types::PyTuple;
 use urhead_core::raster::{self, AntialiasInputs, ScatterInputs, SilhouetteBlends, PACKED_BLEND};
 use urhead_core::Real;
 
-use crate::arrays::{array, data, optional, shape, with_float_type};
+use crate::arrays::{array, data, optional, optional_data, shape, with_float_type};
 use crate::camera::{camera, CameraArgs};
 use crate::errors::{py_err, ShapeError};
 use crate::pool::with_threads;
@@ -116,7 +116,7 @@ fn interpolate_forward_typed<'py, T: Element + Real>(
         data(&tri_id, "tri_id")?,
         data(&bary, "bary")?,
     );
-    let p = pixels.as_ref().map(|p| data(p, "pixels")).transpose()?;
+    let p = optional_data(&pixels, "pixels")?;
     let out = py
         .allow_threads(|| {
             with_threads(num_threads, || {
@@ -157,7 +157,7 @@ fn interpolate_backward_typed<'py, T: Element + Real>(
         data(&bary, "bary")?,
         data(&v_out, "v_out")?,
     );
-    let p = pixels.as_ref().map(|p| data(p, "pixels")).transpose()?;
+    let p = optional_data(&pixels, "pixels")?;
     let out = py
         .allow_threads(|| {
             with_threads(num_threads, || {

@@ -8,7 +8,7 @@ use pyo3::prelude::*;
 use pyo3::types::PyTuple;
 use urhead_core::raytrace::{render, Light, RenderSettings, Scene, SceneInputs, Texture, TriangleBvh};
 
-use crate::arrays::{array, data, shape};
+use crate::arrays::{array, data, optional_data, shape};
 use crate::camera::{camera, CameraArgs};
 use crate::errors::{py_err, ShapeError};
 use crate::pool::with_threads;
@@ -117,7 +117,7 @@ pub fn raytrace_render<'py>(
         normals: data(&normals, "normals")?,
         colors: data(&colors, "colors")?,
         solid: data(&solid, "solid")?,
-        uvs: uvs.as_ref().map(|u| data(u, "uvs")).transpose()?,
+        uvs: optional_data(&uvs, "uvs")?,
         face_material: data(&face_material, "face_material")?,
         materials: data(&materials, "materials")?,
         decals: data(&decals, "decals")?,
