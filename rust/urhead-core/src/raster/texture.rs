@@ -25,22 +25,16 @@ use crate::Real;
 /// Texel indices are stored as u32.
 const MAX_TEXELS: usize = u32::MAX as usize;
 
-/// `o = Σ_k w_k·rows_k`, in blocks of 8 channels so the compiler emits full vectors.
+/// `o = Σ_k w_k·rows_k`, one channel at a time: a plain loop over zipped slices, which
+/// the loop vectoriser turns into full vectors (it checks at run time that `o` does not
+/// overlap the rows). Blocks of 8 indexed channels stayed scalar (bounds checks and
+/// stores between the loads defeat the block vectoriser), ~30 % of a lookup's time.
 #[inline(always)]
 pub(crate) fn blend<T: Real>(o: &mut [T], rows: [&[T]; 4], w: [T; 4]) {
-    let c = o.len();
-    let rows = rows.map(|r| &r[..c]);
-    let full = c / 8 * 8;
-    for k0 in (0..full).step_by(8) {
-        let mut acc = [T::zero(); 8];
-        for j in 0..8 {
-            let k = k0 + j;
-            acc[j] = w[0] * rows[0][k] + w[1] * rows[1][k] + w[2] * rows[2][k] + w[3] * rows[3][k];
-        }
-        o[k0..k0 + 8].copy_from_slice(&acc);
-    }
-    for k in full..c {
-        o[k] = w[0] * rows[0][k] + w[1] * rows[1][k] + w[2] * rows[2][k] + w[3] * rows[3][k];
+    let [r0, r1, r2, r3] = rows;
+    let values = o.iter_mut().zip(r0).zip(r1).zip(r2).zip(r3);
+    for ((((o, &a), &b), &c), &d) in values {
+        *o = w[0] * a + w[1] * b + w[2] * c + w[3] * d;
     }
 }
 
