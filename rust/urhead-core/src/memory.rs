@@ -32,10 +32,19 @@ macro_rules! zero_bits {
 }
 zero_bits!(f32, f64, i8, i16, i32, i64, u8, u16, u32, u64, usize, isize);
 
-/// `len` zeros named `what` (the name goes into the error). The memory comes from
-/// `alloc_zeroed` (`calloc`): large buffers are fresh zero pages, advised to be huge pages
-/// before anything touches them, and no zeroing pass runs. `Err(OutOfMemory)` when the byte
-/// count overflows or the allocator refuses, instead of aborting the process.
+/// `len` zeros named `what` (the name goes into the error). `Err(OutOfMemory)` when the
+/// byte count overflows or the allocator refuses, instead of aborting the process.
+///
+/// Where the zeros come from:
+/// - small buffers, and buffers made outside a kernel pool: `alloc_zeroed` (`calloc`);
+/// - from [`PARALLEL_ZEROING`] up to [`FRESH_PAGES`], on a pool's thread: an uninitialised
+///   block, zeroed by the pool's threads. glibc clears a reused heap block (the command
+///   line keeps freed memory, so nearly every output is one) with a serial `memset` on the
+///   calling thread while the pool's other workers wait: ~5 % of a 512² frame's CPU time;
+/// - larger buffers: `calloc` again, which gets fresh zero pages from the kernel and writes
+///   nothing (a sparse accumulator then only faults in the pages it touches).
+///
+/// Buffers of 4 MiB and more are advised to be huge pages before anything touches them.
 pub fn zeroed<T: ZeroBits>(what: &'static str, len: usize) -> Result<Vec<T>> {
     let out_of_memory = || Error::OutOfMemory {
         what,
@@ -43,22 +52,45 @@ pub fn zeroed<T: ZeroBits>(what: &'static str, len: usize) -> Result<Vec<T>> {
         bytes: len as u128 * std::mem::size_of::<T>() as u128,
     };
     let layout = Layout::array::<T>(len).map_err(|_| out_of_memory())?;
-    if layout.size() == 0 {
+    let bytes = layout.size();
+    if bytes == 0 {
         return Ok(Vec::new());
     }
-    // SAFETY: `layout` has a non-zero size, as `alloc_zeroed` requires.
-    let ptr = unsafe { std::alloc::alloc_zeroed(layout) }.cast::<T>();
+    let parallel =
+        (PARALLEL_ZEROING..FRESH_PAGES).contains(&bytes) && rayon::current_thread_index().is_some();
+    // SAFETY: `layout` has a non-zero size, as both allocation functions require.
+    let ptr = unsafe {
+        if parallel {
+            std::alloc::alloc(layout)
+        } else {
+            std::alloc::alloc_zeroed(layout)
+        }
+    };
     if ptr.is_null() {
         return Err(out_of_memory());
+    }
+    advise_huge_pages_of(ptr as usize, bytes);
+    if parallel {
+        // SAFETY: the `bytes` bytes at `ptr` are one live allocation that nothing else
+        // references yet; writing bytes (`u8` has no invalid values) needs no prior init.
+        let raw = unsafe { std::slice::from_raw_parts_mut(ptr, bytes) };
+        raw.par_chunks_mut(ZEROING_CHUNK).for_each(|chunk| chunk.fill(0));
     }
     // SAFETY: `ptr` is a live allocation from the global allocator with exactly the layout
     // `Vec<T>` uses for capacity `len` (`Layout::array::<T>(len)`), so the Vec may own and
     // later free it. All `len` elements are initialised: the bytes are zero and `T: ZeroBits`
     // guarantees all-zero bytes are a valid `T`.
-    let buf = unsafe { Vec::from_raw_parts(ptr, len, len) };
-    advise_huge_pages(&buf);
-    Ok(buf)
+    Ok(unsafe { Vec::from_raw_parts(ptr.cast::<T>(), len, len) })
 }
+
+/// Buffers at least this large (bytes) are zeroed by the pool's threads (see [`zeroed`]).
+const PARALLEL_ZEROING: usize = 256 << 10;
+/// Buffers at least this large (bytes) are left to `calloc`'s fresh zero pages: glibc maps
+/// blocks this large afresh (32 MiB is its largest mmap threshold, the one the command line
+/// sets), so no zeroing pass runs for them.
+const FRESH_PAGES: usize = 32 << 20;
+/// Bytes zeroed per parallel task.
+const ZEROING_CHUNK: usize = 64 << 10;
 
 /// [`zeroed`] for a long-lived table, on fresh huge pages made resident by a first write
 /// each. Two ways a table would otherwise miss them:
@@ -246,6 +278,27 @@ mod tests {
             assert_eq!(v.len(), len);
             assert!(v.iter().all(|&x| x == 0.0));
         }
+    }
+
+    #[test]
+    fn zeroed_buffers_are_zero_on_a_pool_whatever_their_size() {
+        // On a pool's thread the middle sizes are zeroed by the pool, not by calloc; memory
+        // freed dirty just before is likely handed out again, and must read as zeros.
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
+        pool.install(|| {
+            let bytes = [
+                PARALLEL_ZEROING - 4,
+                PARALLEL_ZEROING,
+                (3 << 20) + 12,
+                FRESH_PAGES + 4,
+            ];
+            for len in bytes.map(|b| b / 4) {
+                drop(vec![-3.25f32; len]);
+                let v: Vec<f32> = zeroed("test buffer", len).unwrap();
+                assert_eq!(v.len(), len);
+                assert!(v.iter().all(|x| x.to_bits() == 0), "{len} elements");
+            }
+        });
     }
 
     #[test]
