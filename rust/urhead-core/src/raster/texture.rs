@@ -31,7 +31,7 @@ const MAX_TEXELS: usize = u32::MAX as usize;
 /// stores between the loads defeat the block vectoriser), ~30 % of a lookup's time.
 #[inline(always)]
 pub(crate) fn blend<T: Real>(o: &mut [T], rows: [&[T]; 4], w: [T; 4]) {
-    let [r0, r1, r2, r3] = rows;
+    let [r0, r1, r2, r3] = rows.map(|r| &r[..o.len()]); // every row covers the output
     let values = o.iter_mut().zip(r0).zip(r1).zip(r2).zip(r3);
     for ((((o, &a), &b), &c), &d) in values {
         *o = w[0] * a + w[1] * b + w[2] * c + w[3] * d;
