@@ -114,6 +114,21 @@ impl<T: Real> TrianglePlanes<T> {
         let c = &self.coef;
         map3(|i| c[i][0] * ex + c[i][1] * ey + c[i][2])
     }
+
+    /// The row terms `c[i][1]·ey` of [`raw`](Self::raw) for a row at offset `ey`, made once
+    /// for a scan along the row.
+    #[inline(always)]
+    pub fn row_terms(&self, ey: T) -> [T; 3] {
+        map3(|i| self.coef[i][1] * ey)
+    }
+
+    /// [`raw`](Self::raw) at `(ex, ey)` given `row_terms(ey)`: the same operations in the
+    /// same order, so the same bits.
+    #[inline(always)]
+    pub fn raw_on_row(&self, ex: T, row_terms: &[T; 3]) -> [T; 3] {
+        let c = &self.coef;
+        map3(|i| c[i][0] * ex + row_terms[i] + c[i][2])
+    }
 }
 
 /// Barycentrics at one pixel: clamped to the simplex and normalised, with what the adjoint
