@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from splat_scenes import camera, head_scene, requires_grad, weighted_loss
+from urhead.errors import ShapeError
 from urhead.ops import _reference as ref
 from urhead.ops import rasterize_gaussians
 
@@ -155,6 +156,65 @@ def test_transmittance_is_differentiable_and_compositing_uses_it():
         return o.grad
 
     assert torch.allclose(run(rasterize_gaussians), run(ref.rasterize_gaussians), rtol=1e-10)
+
+
+@pytest.mark.parametrize(("with_depth", "size"), [(False, 64), (True, 64), (False, 45)])
+def test_an_image_background_is_the_composite_over_it(with_depth, size):
+    """An (H, W, S) background (here RGBA-like, S = 4 > C = 3) is the Gaussians over black
+    composited over its colour, forward and backward (float64 reference autograd), its own
+    gradient T·v_image and zero past the colour; 45² ends in partial tiles and chunks."""
+    means, quats, scales, opac, sh, cam = head_scene(150, torch.float64, seed=11, size=size)
+    g = torch.Generator().manual_seed(5)
+    behind = torch.rand(size, size, 4, generator=g, dtype=torch.float64)
+    depth = torch.full((size, size), 0.75, dtype=torch.float64) if with_depth else None
+
+    def run(fused):
+        m, q, s, o, c, b = requires_grad(means, quats, scales, opac, sh, behind)
+        if fused:
+            out = rasterize_gaussians(m, q, s, o, c, cam, b, depth)
+            image, t = out.image, out.transmittance
+        else:
+            image, t, _ = ref.rasterize_gaussians(m, q, s, o, c, cam, None, depth)
+            image = image + t[..., None] * b[..., :3]
+        weighted_loss(image, t).backward()
+        return image.detach(), [m.grad, q.grad, s.grad, o.grad, c.grad, b.grad]
+
+    (ours, ours_grads), (theirs, their_grads) = run(True), run(False)
+    assert (ours - theirs).abs().max() < 1e-12
+    names = ["means", "quats", "scales", "opacities", "sh", "background"]
+    for name, a, b in zip(names, ours_grads, their_grads, strict=True):
+        err = (a - b).abs().max() / b.abs().max()
+        assert err < 1e-12, f"{name}: relative error {err}"
+    assert torch.equal(ours_grads[5][..., 3], torch.zeros(size, size, dtype=torch.float64))
+    assert (ours - behind[..., :3]).abs().max() > 0.1, "the Gaussians cover something"
+
+
+def test_an_image_background_in_float32_is_the_float32_composite_bit_for_bit():
+    """Over black and then composited (as `composite` does) or composited in the same
+    pass: acc + T·behind either way, the same float32 operations."""
+    from urhead.ops import composite
+
+    means, quats, scales, opac, sh, cam = head_scene(300, torch.float32, seed=12)
+    behind = torch.rand(64, 64, 4, generator=torch.Generator().manual_seed(6))
+    behind[3, 5, 0] = float("nan")  # data, not an error: it shows where T > 0
+    fused = rasterize_gaussians(means, quats, scales, opac, sh, cam, behind)
+    alone = rasterize_gaussians(means, quats, scales, opac, sh, cam)
+    expected = composite(alone.image, alone.transmittance, behind)
+    assert torch.equal(fused.image.nan_to_num(7.0), expected.nan_to_num(7.0))
+    assert torch.isnan(fused.image[3, 5, 0]) and torch.isnan(expected[3, 5, 0])
+    assert torch.equal(fused.transmittance, alone.transmittance)
+
+
+def test_a_background_of_the_wrong_shape_is_named():
+    means, quats, scales, opac, sh, cam = head_scene(20, torch.float32)
+    for bad in (
+        torch.zeros(64, 64, 2),
+        torch.zeros(32, 64, 4),
+        torch.zeros(4),
+        torch.zeros(64, 64),
+    ):
+        with pytest.raises(ShapeError, match="background"):
+            rasterize_gaussians(means, quats, scales, opac, sh, cam, bad)
 
 
 def test_densification_outputs():

@@ -66,7 +66,7 @@ def stage_functions(trainer, state):
         displaced, offsets = avatar.displace(verts, rotations)
         mesh = avatar.shade_mesh(displaced, offsets, rotations, camera, False)
         lift = avatar.lift_gaussians(verts, rotations, camera)
-        image = avatar.splat(lift, camera, mesh.depth).image
+        image = avatar.splat(lift, camera, mesh.depth, mesh.rgba).image
     h, w = camera.height, camera.width
     g_verts = torch.randn(verts.shape, generator=g) * 1e-3
     g_image = torch.randn(h, w, 3, generator=g) * 1e-3
@@ -105,7 +105,7 @@ def stage_functions(trainer, state):
     )
 
     def splatting():
-        out = avatar.splat(leaves, camera, mesh.depth)
+        out = avatar.splat(leaves, camera, mesh.depth, mesh.rgba)  # over the mesh, as render
         out.image.backward(g_image)
 
     def loss_stage():

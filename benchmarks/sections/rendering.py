@@ -17,10 +17,9 @@ import torch
 from sections.common import ms, one_torch_thread, save, table
 from sections.scene import paper_scene
 from urhead._in_flight import default_depth, in_flight
-from urhead.ops import composite
 
 TITLE = "Rendering FPS at 512² (forward only)"
-STAGES = ("skinning", "displacement", "mesh branch", "Gaussian lift", "splatting", "composite")
+STAGES = ("skinning", "displacement", "mesh branch", "Gaussian lift", "splatting")
 
 
 @torch.no_grad()
@@ -38,11 +37,9 @@ def frame(avatar, params, camera, stamps: list | None = None) -> torch.Tensor:
     mark("mesh branch")
     lift = avatar.lift_gaussians(verts, rotations, camera)
     mark("Gaussian lift")
-    splat = avatar.splat(lift, camera, mesh.depth)
+    splat = avatar.splat(lift, camera, mesh.depth, mesh.rgba)  # over the mesh, as Avatar.render
     mark("splatting")
-    image = composite(splat.image, splat.transmittance, mesh.rgba)  # as Avatar.render
-    mark("composite")
-    return image
+    return splat.image
 
 
 def measure(num_gaussians: int, repeats: int) -> dict:
@@ -189,10 +186,10 @@ def render(results: dict, figures: Path) -> str:
             "initialised from a synthetic subject's first frame, rendered by the avatar's own "
             "stages: skinning, displacement along the normal map, the mesh branch (raster, "
             "map lookups at covered pixels, SH colour, antialias), the Gaussians lifted from "
-            "their UV points and splatted with occlusion against the mesh depth, composited "
-            "by transmittance. No gradients; medians of consecutive frames, in wall time and in "
-            "process CPU time (user + system, all threads; the figure to compare across runs "
-            "on a busy machine).",
+            "their UV points and splatted with occlusion against the mesh depth, over the mesh "
+            "in the same pass (T·mesh RGBA added per pixel). No gradients; medians of "
+            "consecutive frames, in wall time and in process CPU time (user + system, all "
+            "threads; the figure to compare across runs on a busy machine).",
             body,
             "A sequence of frames (different parameters, one camera, as `urhead render` and "
             "`reenact` render them, through `avatar.render`): one at a time, and a few in "

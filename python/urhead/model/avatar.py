@@ -31,7 +31,6 @@ from urhead.model.map_layout import (
 from urhead.ops import (
     antialias,
     antialias_topology,
-    composite,
     covered_pixels,
     half_maps,
     interpolate,
@@ -105,7 +104,8 @@ class MeshRender(NamedTuple):
 
 class GaussianRender(NamedTuple):
     image: torch.Tensor
-    """(H, W, 3) premultiplied Gaussian layer."""
+    """(H, W, 3) the Gaussians over what was behind them (in :meth:`Avatar.render` the
+    mesh: the frame's image); premultiplied over black when nothing was."""
     transmittance: torch.Tensor
     """(H, W) transmittance left after the Gaussians."""
     radii: torch.Tensor
@@ -256,9 +256,8 @@ class Avatar:
         if not (gaussians and self.layout.gaussians and self.num_gaussians > 0):
             return Render(mesh.image, mesh, None)
         lift = self.lift_gaussians(verts, rotations, camera, gather, sh_degree=sh_degree)
-        splats = self.splat(lift, camera, mesh.depth if occlusion_aware else None)
-        image = composite(splats.image, splats.transmittance, mesh.rgba)
-        return Render(image, mesh, splats)
+        splats = self.splat(lift, camera, mesh.depth if occlusion_aware else None, mesh.rgba)
+        return Render(splats.image, mesh, splats)
 
     # The stages of :meth:`render`, public so benchmarks and exporters can run them alone.
 
@@ -335,7 +334,9 @@ class Avatar:
         to_camera = torch.einsum("ij,vjk->vik", view, rotations)
         pixel_rot = interpolate(to_camera.reshape(-1, 9), raster, t.faces, pixels)
         pixel_rot = pixel_rot.reshape(-1, 3, 3)
-        rays = self._rays(camera).index_select(0, pixels)  # ~3× faster than [pixels]
+        # numpy's row gather: 75k of 262k rays in 0.19 ms against index_select's 0.43
+        # (and [pixels]' ~1.3), on the one thread the glue runs on.
+        rays = torch.from_numpy(np.take(self._rays(camera).numpy(), pixels.numpy(), axis=0))
         rotation = pixel_rot.detach()
         local = rotate_normalize(rotation, rays, transpose=True)  # (V·R)ᵀ·(V·ray) = Rᵀ·ray
         # The colour and the few other maps the pixels need, in one pass over their texels
@@ -401,9 +402,10 @@ class Avatar:
             self._face_verts = cached = (face, face._version, ids)
         return cached[2]
 
-    def splat(self, lift: GaussianLift, camera, depth_map) -> GaussianRender:
+    def splat(self, lift: GaussianLift, camera, depth_map, behind=None) -> GaussianRender:
         """Occlusion-aware splatting of lifted Gaussians (no occlusion with ``depth_map``
-        None)."""
+        None), composited over ``behind`` ((H, W, S), its first three channels the colour:
+        the mesh's RGBA) in the same pass; over black when None."""
         out = rasterize_gaussians(
             lift.means.contiguous(),
             lift.quats.contiguous(),
@@ -411,6 +413,7 @@ class Avatar:
             lift.opacities.contiguous(),
             lift.colors.contiguous(),
             camera,
+            background=behind,
             depth_map=depth_map,
             depth_eps=self.depth_eps,
         )

@@ -153,14 +153,17 @@ class _Rasterize(torch.autograd.Function):
             height,
             grad_to_numpy("v_image", v_image, dtype),
             grad_to_numpy("v_transmittance", v_transmittance, dtype),
+            ctx.transmittance.numpy() if background is not None and background.dim() == 3 else None,
             num_threads(),
         )
-        v_means2d, v_conics, v_colors, v_opacities = map(from_numpy, grads)
+        v_means2d, v_conics, v_colors, v_opacities, v_behind = map(from_numpy, grads)
         v_background = None
         if need[6] and v_image is not None:
-            # image = … + T·background: ∂L/∂background = Σ_pixels T·v_image.
-            t = ctx.transmittance
-            v_background = (t[..., None] * v_image).sum((0, 1))
+            if background.dim() == 3:  # an image behind: T·v_image per pixel, from the kernel
+                v_background = v_behind
+            else:  # image = … + T·background: ∂L/∂background = Σ_pixels T·v_image.
+                t = ctx.transmittance
+                v_background = (t[..., None] * v_image).sum((0, 1))
         return (
             v_means2d,
             v_conics,
@@ -209,7 +212,12 @@ def rasterize_gaussians(
             coefficients (3DGS layout and constants, colour = max(SH(dir) + 0.5, 0) with
             dir = normalise(mean − camera centre)).
         camera: the :class:`urhead.Camera`.
-        background: (C,) colour added as T·background; zeros when None. Differentiable.
+        background: what shows through the Gaussians, added as T·background: a (C,)
+            colour, or an (H, W, S) image with S ≥ C whose first C channels show (a
+            mesh's RGBA: the Gaussians composited over it in the same pass, as
+            :func:`urhead.ops.composite` would, without its pass over three images; its
+            values are data, so a non-finite one passes into its pixel). Zeros when None.
+            Differentiable (an image's gradient is T·v_image, zero past its C channels).
         depth_map: (H, W) linear view-space depth of the mesh (+inf where there is none);
             a sample whose Gaussian depth exceeds ``depth_map + depth_eps`` at that pixel is
             skipped. No gradient flows to it (the test is discrete).
@@ -254,7 +262,16 @@ def rasterize_gaussians(
     else:
         raise ShapeError(f"colors must be (N, C) or (N, K, 3), got {tuple(colors.shape)}")
     channels = 3 if sh is not None else colors.shape[1]
-    if background is not None:
+    if background is not None and isinstance(background, torch.Tensor) and background.dim() == 3:
+        behind = tuple(background.shape)
+        if behind[:2] != (camera.height, camera.width) or behind[2] < channels:
+            raise ShapeError(
+                f"background must be (C,) = ({channels},) or (H, W, S) = ({camera.height}, "
+                f"{camera.width}, S ≥ {channels}), got {behind}"
+            )
+        _check_like("background", background, dtype, behind)
+        background = background.contiguous()
+    elif background is not None:
         _check_like("background", background, dtype, (channels,))
     if depth_map is not None:
         _check_like("depth_map", depth_map, dtype, (camera.height, camera.width))

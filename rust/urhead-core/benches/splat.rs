@@ -26,7 +26,7 @@ fn bench_splat(c: &mut Criterion) {
             let raster = scene.raster_inputs(&proj, Some(&bg), None, 0.01);
             let fwd = rasterize_forward(&raster).unwrap();
             if backward {
-                let rg = rasterize_backward(&raster, &fwd.binning, Some(&v_image), Some(&v_t)).unwrap();
+                let rg = rasterize_backward(&raster, &fwd.binning, Some(&v_image), Some(&v_t), None).unwrap();
                 let grads = ProjectGradOutputs {
                     v_means2d: Some(&rg.v_means2d),
                     v_conics: Some(&rg.v_conics),

@@ -46,7 +46,7 @@ where
     let bg = [0.2, 0.5, 0.9].map(L::Elem::c);
     let raster = s.raster_inputs(&proj, Some(&bg), depth_map, L::Elem::c(0.01));
     let fwd = rasterize_forward_with::<L>(&raster).unwrap();
-    let rg = rasterize_backward_with::<L>(&raster, &fwd.binning, Some(w_img), Some(w_t)).unwrap();
+    let rg = rasterize_backward_with::<L>(&raster, &fwd.binning, Some(w_img), Some(w_t), None).unwrap();
     let needs = ProjectNeeds {
         means: true,
         quats: true,
@@ -266,8 +266,8 @@ fn gaussians_hidden_in_a_whole_tile_are_not_listed_there() {
         dropped > 0 && dropped < uncut.num_intersections(),
         "{dropped} dropped"
     );
-    let a = rasterize_backward_with::<L>(&occluded, &culled, Some(&w_img), Some(&w_t)).unwrap();
-    let b = rasterize_backward_with::<L>(&occluded, &uncut, Some(&w_img), Some(&w_t)).unwrap();
+    let a = rasterize_backward_with::<L>(&occluded, &culled, Some(&w_img), Some(&w_t), None).unwrap();
+    let b = rasterize_backward_with::<L>(&occluded, &uncut, Some(&w_img), Some(&w_t), None).unwrap();
     assert_eq!(a.v_means2d, b.v_means2d);
     assert_eq!(a.v_conics, b.v_conics);
     assert_eq!(a.v_colors, b.v_colors);

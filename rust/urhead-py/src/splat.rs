@@ -2,11 +2,11 @@
 //! float32 and float64 through one generic body. What the rasterizer's backward needs from its
 //! forward crosses back to Python as an opaque `SplatState` object.
 
-use numpy::{Element, PyReadonlyArrayDyn};
+use numpy::{Element, PyReadonlyArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::PyTuple;
 use urhead_core::splat::{
-    project_backward, project_forward, rasterize_backward, rasterize_forward, Binning, ProjectGradOutputs,
+    project_backward, project_forward, Background, rasterize_backward, rasterize_forward, Binning, ProjectGradOutputs,
     ProjectInputs, ProjectNeeds, RasterInputs, ShCoeffs, SplatReal,
 };
 
@@ -105,9 +105,7 @@ fn raster_inputs<'a, T: Element + SplatReal>(
             )));
         }
     }
-    if let Some(b) = background {
-        shape(b, "background", 1, "(C,)")?;
-    }
+    let background = background.map(|b| background_of(b, height, width)).transpose()?;
     Ok(RasterInputs {
         means2d: data(means2d, "means2d")?,
         conics: data(conics, "conics")?,
@@ -119,10 +117,29 @@ fn raster_inputs<'a, T: Element + SplatReal>(
         channels: c,
         width,
         height,
-        background: background.map(|b| data(b, "background")).transpose()?,
+        background,
         depth_map: depth_map.map(|d| data(d, "depth_map")).transpose()?,
         depth_eps,
     })
+}
+
+/// A uniform `(C,)` background, or an image `(H, W, S)` behind the Gaussians.
+fn background_of<'a, T: Element + SplatReal>(
+    b: &'a Arr<'_, T>,
+    height: usize,
+    width: usize,
+) -> PyResult<Background<'a, T>> {
+    let s = b.shape().to_vec();
+    match s[..] {
+        [_] => Ok(Background::Uniform(data(b, "background")?)),
+        [bh, bw, channels] if (bh, bw) == (height, width) => Ok(Background::Image {
+            values: data(b, "background")?,
+            channels,
+        }),
+        _ => Err(ShapeError::new_err(format!(
+            "background must be (C,) or (H, W, S) = ({height}, {width}, S), got shape {s:?}"
+        ))),
+    }
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -261,6 +278,7 @@ fn rasterize_backward_typed<'py, T: Element + SplatReal>(
     height: usize,
     v_image: Option<Arr<'py, T>>,
     v_transmittance: Option<Arr<'py, T>>,
+    transmittance: Option<Arr<'py, T>>,
     num_threads: usize,
 ) -> PyResult<Bound<'py, PyTuple>> {
     let arrays = (means2d, conics, colors, opacities, depths, radii);
@@ -278,17 +296,23 @@ fn rasterize_backward_typed<'py, T: Element + SplatReal>(
         .map(|a| data(a, "v_transmittance"))
         .transpose()?;
     let bins = &state.binning;
-    let g = py
-        .allow_threads(|| with_threads(num_threads, || rasterize_backward(&inputs, bins, v_image, v_t)))
-        .map_err(py_err)?;
     let (n, c) = (inputs.num_gaussians, inputs.channels);
+    let behind = match inputs.background {
+        Some(Background::Image { channels, .. }) => Some(channels),
+        _ => None,
+    };
+    let t = transmittance.as_ref().map(|a| data(a, "transmittance")).transpose()?;
+    let g = py
+        .allow_threads(|| with_threads(num_threads, || rasterize_backward(&inputs, bins, v_image, v_t, t)))
+        .map_err(py_err)?;
     PyTuple::new(
         py,
         [
-            array(py, g.v_means2d, &[n, 2])?,
-            array(py, g.v_conics, &[n, 3])?,
-            array(py, g.v_colors, &[n, c])?,
-            array(py, g.v_opacities, &[n])?,
+            array(py, g.v_means2d, &[n, 2])?.into_any().unbind(),
+            array(py, g.v_conics, &[n, 3])?.into_any().unbind(),
+            array(py, g.v_colors, &[n, c])?.into_any().unbind(),
+            array(py, g.v_opacities, &[n])?.into_any().unbind(),
+            optional(py, g.v_background, &[height, width, behind.unwrap_or(0)])?,
         ],
     )
 }
@@ -390,9 +414,11 @@ pub fn splat_rasterize_forward<'py>(
     ))
 }
 
-/// Rasterization backward → (v_means2d, v_conics, v_colors, v_opacities).
+/// Rasterization backward → (v_means2d, v_conics, v_colors, v_opacities, v_background:
+/// (H, W, S) for an image background, which needs the forward's `transmittance`, else
+/// None).
 #[pyfunction]
-#[pyo3(signature = (state, means2d, conics, colors, opacities, depths, radii, background, depth_map, depth_eps, width, height, v_image, v_transmittance, num_threads))]
+#[pyo3(signature = (state, means2d, conics, colors, opacities, depths, radii, background, depth_map, depth_eps, width, height, v_image, v_transmittance, transmittance, num_threads))]
 pub fn splat_rasterize_backward<'py>(
     py: Python<'py>,
     state: PyRef<'py, SplatState>,
@@ -409,6 +435,7 @@ pub fn splat_rasterize_backward<'py>(
     height: usize,
     v_image: Option<&Bound<'py, PyAny>>,
     v_transmittance: Option<&Bound<'py, PyAny>>,
+    transmittance: Option<&Bound<'py, PyAny>>,
     num_threads: usize,
 ) -> PyResult<Bound<'py, PyTuple>> {
     with_float_type!(means2d, T => rasterize_backward_typed::<T>(
@@ -427,6 +454,7 @@ pub fn splat_rasterize_backward<'py>(
         height,
         optional_array(v_image)?,
         optional_array(v_transmittance)?,
+        optional_array(transmittance)?,
         num_threads,
     ))
 }

@@ -201,6 +201,18 @@ pub struct ProjectGrads<T> {
     pub v_sh: Option<Vec<T>>,
 }
 
+/// What shows through the Gaussians: each pixel's colour gets `T·background` added.
+#[derive(Debug, Clone, Copy)]
+pub enum Background<'a, T> {
+    /// `(C,)`: one colour at every pixel (finite).
+    Uniform(&'a [T]),
+    /// `(H, W, S)` with `S ≥ C`: an image behind the Gaussians, of which the first `C`
+    /// channels show (the avatar's antialiased mesh as its RGBA, with no copy of the
+    /// colour). Compositing over it here saves a pass over three images and a kernel
+    /// call. Its values are data, as a composite's: a non-finite one passes into its pixel.
+    Image { values: &'a [T], channels: usize },
+}
+
 /// The projected 2D Gaussians and per-pixel state the rasterizer takes.
 #[derive(Debug, Clone, Copy)]
 pub struct RasterInputs<'a, T> {
@@ -216,8 +228,8 @@ pub struct RasterInputs<'a, T> {
     pub channels: usize,
     pub width: usize,
     pub height: usize,
-    /// `(C,)`, added as T·background; zero when `None`.
-    pub background: Option<&'a [T]>,
+    /// What shows through the Gaussians, added as T·background; zero when `None`.
+    pub background: Option<Background<'a, T>>,
     /// `(H, W)` linear view-space depth of the mesh; +inf where there is no surface.
     pub depth_map: Option<&'a [T]>,
     pub depth_eps: T,
@@ -256,9 +268,28 @@ impl<T: Real> RasterInputs<'_, T> {
         check_finite("colors", self.colors)?;
         check_finite("opacities", self.opacities)?;
         check_finite("depths", self.depths)?;
-        if let Some(bg) = self.background {
-            check_len("background", bg, c, &format!("(C,) with C = {c}"))?;
-            check_finite("background", bg)?;
+        match self.background {
+            Some(Background::Uniform(bg)) => {
+                check_len("background", bg, c, &format!("(C,) with C = {c}"))?;
+                check_finite("background", bg)?;
+            }
+            Some(Background::Image { values, channels }) => {
+                if channels < c {
+                    return Err(Error::Shape {
+                        arg: "background",
+                        expected: format!("(H, W, S) with S ≥ C = {c}"),
+                        got: format!("S = {channels}"),
+                    });
+                }
+                let (w, h) = (self.width, self.height);
+                check_len(
+                    "background",
+                    values,
+                    w * h * channels,
+                    &format!("(H, W, S) = ({h}, {w}, {channels})"),
+                )?;
+            }
+            None => {}
         }
         if let Some(d) = self.depth_map {
             check_len(

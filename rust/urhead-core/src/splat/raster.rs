@@ -8,7 +8,7 @@ use rayon::prelude::*;
 
 use super::binning::Binning;
 use super::lanes::{Lanes, WIDTH};
-use super::{RasterInputs, SplatReal, ALPHA_MAX, ALPHA_MIN, TILE, T_STOP};
+use super::{Background, RasterInputs, SplatReal, ALPHA_MAX, ALPHA_MIN, TILE, T_STOP};
 use crate::error::Result;
 use crate::mat3::map3;
 use crate::memory::{filled, zeroed};
@@ -297,7 +297,7 @@ where
     let mut image = zeroed("splat image (H, W, C)", w * h * c)?;
     let mut transmittance = filled("splat transmittance (H, W)", w * h, L::Elem::one())?;
     let zero_bg = vec![L::Elem::zero(); c];
-    let background = inputs.background.unwrap_or(&zero_bg);
+    let background = inputs.background.unwrap_or(Background::Uniform(&zero_bg));
     let evaluated_chunks: u64 = image
         .par_chunks_mut(TILE * w * c)
         .zip(transmittance.par_chunks_mut(TILE * w))
@@ -349,10 +349,11 @@ where
 }
 
 /// Writes a finished tile's pixels: colour = accumulated + T·background.
+#[allow(clippy::too_many_arguments)]
 fn write_tile<L: Lanes>(
     st: &TileState<L>,
     acc: &[L],
-    background: &[L::Elem],
+    background: Background<'_, L::Elem>,
     image_rows: &mut [L::Elem],
     t_rows: &mut [L::Elem],
     w: usize,
@@ -372,11 +373,27 @@ fn write_tile<L: Lanes>(
             for i in 0..lanes {
                 t_rows[row * w + xc + i] = t[i];
             }
-            for k in 0..c {
-                let col = acc[k * SLOTS + slot].to_array();
-                for i in 0..lanes {
-                    image_rows[(row * w + xc + i) * c + k] = col[i] + t[i] * background[k];
+            // The two kinds apart, so the uniform colour's loop stays as simple as it was.
+            match background {
+                Background::Uniform(colour) => {
+                    for (k, &behind) in colour.iter().enumerate() {
+                        let col = acc[k * SLOTS + slot].to_array();
+                        for i in 0..lanes {
+                            image_rows[(row * w + xc + i) * c + k] = col[i] + t[i] * behind;
+                        }
+                    }
                 }
+                Background::Image { values, channels } if lanes > 0 => {
+                    let behind = &values[(y * w + xc) * channels..];
+                    for k in 0..c {
+                        let col = acc[k * SLOTS + slot].to_array();
+                        for i in 0..lanes {
+                            image_rows[(row * w + xc + i) * c + k] =
+                                col[i] + t[i] * behind[i * channels + k];
+                        }
+                    }
+                }
+                Background::Image { .. } => {} // a chunk past the image's right edge
             }
         }
     }

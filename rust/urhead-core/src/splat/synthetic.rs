@@ -1,7 +1,7 @@
 //! Deterministic synthetic splatting scenes shared by tests and benches: Gaussians of
 //! head-avatar size (a few mm) filling a head-sized ellipsoid in front of a camera.
 
-use super::{ProjectInputs, Projected, RasterInputs, ShCoeffs};
+use super::{Background, ProjectInputs, Projected, RasterInputs, ShCoeffs};
 use crate::sh::num_sh_coeffs;
 use crate::testing::Rng;
 use crate::{Camera, Real};
@@ -115,7 +115,7 @@ impl<T: Real> SyntheticSplat<T> {
             channels: 3,
             width: self.camera.width as usize,
             height: self.camera.height as usize,
-            background,
+            background: background.map(Background::Uniform),
             depth_map,
             depth_eps,
         }
