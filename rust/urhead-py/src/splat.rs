@@ -6,8 +6,8 @@ use numpy::{Element, PyReadonlyArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::PyTuple;
 use urhead_core::splat::{
-    project_backward, project_forward, Background, rasterize_backward, rasterize_forward, Binning, ProjectGradOutputs,
-    ProjectInputs, ProjectNeeds, RasterInputs, ShCoeffs, SplatReal,
+    project_backward, project_forward, rasterize_backward, rasterize_forward, Background, Binning,
+    ProjectGradOutputs, ProjectInputs, ProjectNeeds, RasterInputs, ShCoeffs, SplatReal,
 };
 
 use crate::arrays::{array, data, optional, optional_array, shape, with_float_type};
@@ -301,7 +301,10 @@ fn rasterize_backward_typed<'py, T: Element + SplatReal>(
         Some(Background::Image { channels, .. }) => Some(channels),
         _ => None,
     };
-    let t = transmittance.as_ref().map(|a| data(a, "transmittance")).transpose()?;
+    let t = transmittance
+        .as_ref()
+        .map(|a| data(a, "transmittance"))
+        .transpose()?;
     let g = py
         .allow_threads(|| with_threads(num_threads, || rasterize_backward(&inputs, bins, v_image, v_t, t)))
         .map_err(py_err)?;

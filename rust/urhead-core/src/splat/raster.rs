@@ -388,8 +388,7 @@ fn write_tile<L: Lanes>(
                     for k in 0..c {
                         let col = acc[k * SLOTS + slot].to_array();
                         for i in 0..lanes {
-                            image_rows[(row * w + xc + i) * c + k] =
-                                col[i] + t[i] * behind[i * channels + k];
+                            image_rows[(row * w + xc + i) * c + k] = col[i] + t[i] * behind[i * channels + k];
                         }
                     }
                 }

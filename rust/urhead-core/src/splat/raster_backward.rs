@@ -314,7 +314,11 @@ fn image_background_pass<T: Real>(
             for (i, (g, vb)) in g_last.iter_mut().zip(v_behind.chunks_exact_mut(s)).enumerate() {
                 let px = chunk * PIXELS + i;
                 if let Some(v) = v_image {
-                    let (v, b, t) = (&v[px * c..(px + 1) * c], &behind[px * s..px * s + c], transmittance[px]);
+                    let (v, b, t) = (
+                        &v[px * c..(px + 1) * c],
+                        &behind[px * s..px * s + c],
+                        transmittance[px],
+                    );
                     for k in 0..c {
                         *g += v[k] * b[k];
                         vb[k] = t * v[k];
@@ -424,7 +428,8 @@ mod tests {
         let mut rng = Rng::new(3);
         let v_image = rng.vec::<f32>(48 * 48 * 3, -1.0, 1.0);
         let run = |segment| {
-            backward_segmented::<Emu<f32>>(&raster, &fwd.binning, Some(&v_image), None, None, segment).unwrap()
+            backward_segmented::<Emu<f32>>(&raster, &fwd.binning, Some(&v_image), None, None, segment)
+                .unwrap()
         };
         let whole = run(usize::MAX);
         let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
