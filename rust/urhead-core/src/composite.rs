@@ -92,13 +92,42 @@ pub fn composite_backward<T: Real>(
     need_back: bool,
 ) -> Result<CompositeGrads<T>> {
     let p = inputs.validate()?;
-    let s = inputs.back_channels;
     check_len("v_out", v_out, 3 * p, &format!("(P, 3) = ({p}, 3)"))?;
+    behind_gradients(
+        inputs.transmittance,
+        inputs.back,
+        inputs.back_channels,
+        v_out,
+        3,
+        None,
+        need_transmittance,
+        need_back,
+    )
+}
+
+/// The gradients of what lies behind a premultiplied `C`-channel front, `front + T·back`,
+/// given `v_out (P, C)` (lengths checked by the caller): `v_T = Σ_c v_out·back (+ v_T_in)`
+/// and `v_back = T·v_out` on `back`'s first C of `S` channels, zero past them; `None`
+/// where not asked for. One streaming pass, shared by [`composite_backward`] and the
+/// splatting backward over an image background (whose `v_T_in` is the transmittance's own
+/// upstream gradient).
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn behind_gradients<T: Real>(
+    transmittance: &[T],
+    back: &[T],
+    s: usize,
+    v_out: &[T],
+    c: usize,
+    v_t_in: Option<&[T]>,
+    need_transmittance: bool,
+    need_back: bool,
+) -> Result<CompositeGrads<T>> {
+    let p = transmittance.len();
     let mut v_t = need_transmittance
-        .then(|| zeroed("composite transmittance gradient (P,)", p))
+        .then(|| zeroed("transmittance gradient (P,)", p))
         .transpose()?;
     let mut v_back = need_back
-        .then(|| zeroed("composite back gradient (P, S)", s * p))
+        .then(|| zeroed("back gradient (P, S)", s * p))
         .transpose()?;
     let tasks = p.div_ceil(CHUNK);
     let t_chunks = optional_chunks(v_t.as_deref_mut(), CHUNK, tasks);
@@ -111,15 +140,22 @@ pub fn composite_backward<T: Real>(
             let first = chunk * CHUNK;
             for i in 0..CHUNK.min(p - first) {
                 let px = first + i;
-                let g = &v_out[3 * px..3 * px + 3];
+                let g = &v_out[c * px..c * px + c];
                 if let Some(v_t) = v_t.as_deref_mut() {
-                    let back = &inputs.back[s * px..s * px + 3];
-                    v_t[i] = g[0] * back[0] + g[1] * back[1] + g[2] * back[2];
+                    let behind = &back[s * px..s * px + c];
+                    let mut dot = g[0] * behind[0];
+                    for k in 1..c {
+                        dot += g[k] * behind[k];
+                    }
+                    v_t[i] = match v_t_in {
+                        Some(v) => dot + v[px],
+                        None => dot,
+                    };
                 }
                 if let Some(v_back) = v_back.as_deref_mut() {
-                    let t = inputs.transmittance[px];
-                    for c in 0..3 {
-                        v_back[s * i + c] = t * g[c];
+                    let t = transmittance[px];
+                    for k in 0..c {
+                        v_back[s * i + k] = t * g[k];
                     }
                 }
             }

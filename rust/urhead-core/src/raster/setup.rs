@@ -111,8 +111,7 @@ impl<T: Real> TrianglePlanes<T> {
     /// Unnormalised barycentric weights at a pixel centre offset.
     #[inline(always)]
     pub fn raw(&self, ex: T, ey: T) -> [T; 3] {
-        let c = &self.coef;
-        map3(|i| c[i][0] * ex + c[i][1] * ey + c[i][2])
+        self.raw_on_row(ex, &self.row_terms(ey))
     }
 
     /// The row terms `c[i][1]·ey` of [`raw`](Self::raw) for a row at offset `ey`, made once

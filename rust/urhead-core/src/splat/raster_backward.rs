@@ -16,6 +16,7 @@ use super::lanes::{Lanes, WIDTH};
 use super::raster::{chunk_dx, row_terms, splats, Splat, TileState, SLOTS};
 use super::records::{record_gaussian, RowRecords};
 use super::{Background, RasterInputs, SplatReal, ALPHA_MAX, TILE};
+use crate::composite::behind_gradients;
 use crate::error::{check_len, Error, Result};
 use crate::memory::zeroed;
 use crate::Real;
@@ -105,9 +106,9 @@ fn backward_segmented<L: Lanes>(
     let mut records = zeroed("splat gradient records", binning.num_intersections() * rec_len)?;
     let zero_bg = vec![L::Elem::zero(); c];
     // An image behind: its gradient and its part of each pixel's G_last (v_C·behind) come
-    // from one streaming pass first, and the tiles then run as over black. Read per pixel
-    // inside the tiles' replay instead, the backward took 2.5 ms more, more than a
-    // composite's whole backward.
+    // from one streaming pass first (`behind_gradients`, as for `composite`), and the tiles
+    // then run as over black. Read per pixel inside the tiles' replay instead, the
+    // backward took 2.5 ms more, more than a composite's whole backward.
     let folded: Vec<L::Elem>;
     let (background, v_transmittance, v_background) = match inputs.background {
         Some(Background::Image { values, channels }) => {
@@ -116,9 +117,18 @@ fn backward_segmented<L: Lanes>(
                 reason: "the forward's (H, W) transmittance is needed with an image background".into(),
             })?;
             check_len("transmittance", t, w * h, &format!("(H, W) = ({h}, {w})"))?;
-            let (g_last, v_behind) = image_background_pass(t, values, channels, c, v_image, v_transmittance)?;
-            folded = g_last;
-            (&zero_bg[..], Some(&folded[..]), Some(v_behind))
+            match v_image {
+                Some(v) => {
+                    let g = behind_gradients(t, values, channels, v, c, v_transmittance, true, true)?;
+                    folded = g.v_transmittance.expect("asked for");
+                    (&zero_bg[..], Some(&folded[..]), g.v_back)
+                }
+                None => (
+                    &zero_bg[..],
+                    v_transmittance,
+                    Some(zeroed("splat background gradient (H, W, S)", w * h * channels)?),
+                ),
+            }
         }
         Some(Background::Uniform(colour)) => (colour, v_transmittance, None),
         None => (&zero_bg[..], v_transmittance, None),
@@ -288,48 +298,6 @@ fn replay_and_accumulate<L: Lanes>(
         accumulate(tile, k0, k1, &recs, scratch, out);
         scratch.recs = recs;
     }
-}
-
-/// One pass over the pixels for an image background `behind (H, W, S)` under the forward's
-/// `transmittance (H, W)`: each pixel's G_last, `v_C·behind + v_T` (the transmittance's
-/// whole upstream gradient, as a composite's backward hands it on), and the background's
-/// gradient, `T·v_C` on its first C channels and zero past them.
-fn image_background_pass<T: Real>(
-    transmittance: &[T],
-    behind: &[T],
-    s: usize,
-    c: usize,
-    v_image: Option<&[T]>,
-    v_transmittance: Option<&[T]>,
-) -> Result<(Vec<T>, Vec<T>)> {
-    const PIXELS: usize = 4096;
-    let p = transmittance.len();
-    let mut g_last = zeroed("splat G_last (H, W)", p)?;
-    let mut v_behind = zeroed("splat background gradient (H, W, S)", p * s)?;
-    g_last
-        .par_chunks_mut(PIXELS)
-        .zip(v_behind.par_chunks_mut(PIXELS * s))
-        .enumerate()
-        .for_each(|(chunk, (g_last, v_behind))| {
-            for (i, (g, vb)) in g_last.iter_mut().zip(v_behind.chunks_exact_mut(s)).enumerate() {
-                let px = chunk * PIXELS + i;
-                if let Some(v) = v_image {
-                    let (v, b, t) = (
-                        &v[px * c..(px + 1) * c],
-                        &behind[px * s..px * s + c],
-                        transmittance[px],
-                    );
-                    for k in 0..c {
-                        *g += v[k] * b[k];
-                        vb[k] = t * v[k];
-                    }
-                }
-                if let Some(vt) = v_transmittance {
-                    *g += vt[px];
-                }
-            }
-        });
-    Ok((g_last, v_behind))
 }
 
 /// Back to front over Gaussians `list[k0..k1)` whose records are `recs.range(k − k0)`:
