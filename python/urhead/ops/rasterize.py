@@ -41,7 +41,7 @@ class _Rasterize(torch.autograd.Function):
     @staticmethod
     def forward(ctx, verts, faces, camera):
         dtype = verts.dtype
-        out = native("rasterize_forward")(
+        *out, state = native("rasterize_forward")(
             to_numpy("verts", verts, dtype),
             to_numpy("faces", faces, torch.int32),
             camera.core_args(),
@@ -52,6 +52,8 @@ class _Rasterize(torch.autograd.Function):
         ctx.set_materialize_grads(False)
         ctx.save_for_backward(verts, faces, tri_id)
         ctx.camera = camera
+        # The triangles' setup, kept so that the backward does not set them up again.
+        ctx.state = state if ctx.needs_input_grad[0] else None
         return tri_id, bary, depth
 
     @staticmethod
@@ -61,6 +63,7 @@ class _Rasterize(torch.autograd.Function):
         verts, faces, tri_id = ctx.saved_tensors
         dtype = verts.dtype
         v_verts = native("rasterize_backward")(
+            ctx.state,
             verts.detach().numpy(),
             faces.numpy(),
             ctx.camera.core_args(),

@@ -11,8 +11,9 @@ use rayon::prelude::*;
 use urhead_core::memory::zeroed;
 use urhead_core::raster::{
     antialias_backward, antialias_forward, edge_topology, interpolate_backward, interpolate_forward,
-    rasterize_backward, rasterize_forward, sh_texture_backward, sh_texture_forward, texture_backward,
-    texture_forward, AntialiasInputs, ShTextureGradInputs, ShTextureInputs,
+    rasterize_backward, rasterize_backward_kept, rasterize_forward, rasterize_forward_kept,
+    sh_texture_backward, sh_texture_forward, texture_backward, texture_forward, AntialiasInputs,
+    ShTextureGradInputs, ShTextureInputs,
 };
 use urhead_core::shading::{shade_backward, shade_forward, ShadingInputs};
 use urhead_core::testing::Rng;
@@ -124,7 +125,7 @@ fn mix_backward(g: &[f32], mix: &[f32], tri_id: &[i32]) -> Vec<f32> {
 
 fn chain(s: &Scene, g_out: &[f32]) -> usize {
     let (h, w) = (SIDE as usize, SIDE as usize);
-    let raster = rasterize_forward(&s.verts, &s.faces, &s.camera).unwrap();
+    let (raster, kept) = rasterize_forward_kept(&s.verts, &s.faces, &s.camera).unwrap();
     let uv = interpolate_forward(&s.uvs, 2, &s.faces, &raster.tri_id, &raster.bary, h, w, None).unwrap();
     let sampled = texture_forward(&s.tex, TEX, TEX, CHANNELS, &uv).unwrap();
     let color = mix_forward(&sampled, &s.mix, &raster.tri_id);
@@ -156,7 +157,8 @@ fn chain(s: &Scene, g_out: &[f32]) -> usize {
         true,
     )
     .unwrap();
-    let g_verts = rasterize_backward(
+    let g_verts = rasterize_backward_kept(
+        &kept,
         &s.verts,
         &s.faces,
         &s.camera,
@@ -218,6 +220,12 @@ fn bench_raster(c: &mut Criterion) {
     });
     group.bench_function("rasterize_backward", |b| {
         b.iter(|| rasterize_backward(&s.verts, &s.faces, &s.camera, &raster.tri_id, &g_bary).unwrap())
+    });
+    let (_, kept) = rasterize_forward_kept(&s.verts, &s.faces, &s.camera).unwrap();
+    group.bench_function("rasterize_backward_kept_setup", |b| {
+        b.iter(|| {
+            rasterize_backward_kept(&kept, &s.verts, &s.faces, &s.camera, &raster.tri_id, &g_bary).unwrap()
+        })
     });
     group.bench_function("interpolate_forward", |b| {
         b.iter(|| interpolate_forward(&s.uvs, 2, &s.faces, &raster.tri_id, &raster.bary, h, w, None).unwrap())

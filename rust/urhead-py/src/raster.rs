@@ -4,12 +4,14 @@
 use numpy::{Element, PyReadonlyArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::PyTuple;
-use urhead_core::raster::{self, AntialiasInputs, ScatterInputs, SilhouetteBlends, PACKED_BLEND};
+use urhead_core::raster::{
+    self, AntialiasInputs, RasterSetup, ScatterInputs, SilhouetteBlends, PACKED_BLEND,
+};
 use urhead_core::Real;
 
 use crate::arrays::{array, data, optional, optional_data, shape, with_float_type};
 use crate::camera::{camera, CameraArgs};
-use crate::errors::{py_err, ShapeError};
+use crate::errors::{py_err, InvalidArgumentError, ShapeError};
 use crate::pool::with_threads;
 
 type Arr<'py, T> = PyReadonlyArrayDyn<'py, T>;
@@ -42,7 +44,48 @@ fn image_dims<T: Element>(
     Ok((s[0], s[1]))
 }
 
-fn rasterize_forward_typed<'py, T: Element + Real>(
+/// What one forward rasterization keeps for its backward: the triangles' setup.
+#[pyclass(frozen, module = "urhead._core")]
+pub struct RasterState {
+    setup: KeptSetup,
+}
+
+enum KeptSetup {
+    F32(RasterSetup<f32>),
+    F64(RasterSetup<f64>),
+}
+
+/// The float types a [`RasterState`] holds a setup of.
+trait KeptReal: Real + Element {
+    fn keep(setup: RasterSetup<Self>) -> KeptSetup;
+    fn kept(state: &KeptSetup) -> Option<&RasterSetup<Self>>;
+}
+
+impl KeptReal for f32 {
+    fn keep(setup: RasterSetup<f32>) -> KeptSetup {
+        KeptSetup::F32(setup)
+    }
+    fn kept(state: &KeptSetup) -> Option<&RasterSetup<f32>> {
+        match state {
+            KeptSetup::F32(s) => Some(s),
+            KeptSetup::F64(_) => None,
+        }
+    }
+}
+
+impl KeptReal for f64 {
+    fn keep(setup: RasterSetup<f64>) -> KeptSetup {
+        KeptSetup::F64(setup)
+    }
+    fn kept(state: &KeptSetup) -> Option<&RasterSetup<f64>> {
+        match state {
+            KeptSetup::F64(s) => Some(s),
+            KeptSetup::F32(_) => None,
+        }
+    }
+}
+
+fn rasterize_forward_typed<'py, T: KeptReal>(
     py: Python<'py>,
     verts: Arr<'py, T>,
     faces: Arr<'py, i32>,
@@ -53,22 +96,28 @@ fn rasterize_forward_typed<'py, T: Element + Real>(
     shape_last(&faces, "faces", 2, 3, "(F, 3) int32")?;
     let cam = camera(camera_args)?;
     let (v, f) = (data(&verts, "verts")?, data(&faces, "faces")?);
-    let out = py
-        .allow_threads(|| with_threads(num_threads, || raster::rasterize_forward(v, f, &cam)))
+    let (out, setup) = py
+        .allow_threads(|| with_threads(num_threads, || raster::rasterize_forward_kept(v, f, &cam)))
         .map_err(py_err)?;
     let (h, w) = (out.height, out.width);
+    let state = RasterState {
+        setup: T::keep(setup),
+    };
     PyTuple::new(
         py,
         [
-            array(py, out.tri_id, &[h, w])?.into_any(),
-            array(py, out.bary, &[h, w, 2])?.into_any(),
-            array(py, out.depth, &[h, w])?.into_any(),
+            array(py, out.tri_id, &[h, w])?.into_any().unbind(),
+            array(py, out.bary, &[h, w, 2])?.into_any().unbind(),
+            array(py, out.depth, &[h, w])?.into_any().unbind(),
+            Py::new(py, state)?.into_any(),
         ],
     )
 }
 
-fn rasterize_backward_typed<'py, T: Element + Real>(
+#[allow(clippy::too_many_arguments)]
+fn rasterize_backward_typed<'py, T: KeptReal>(
     py: Python<'py>,
+    state: Option<PyRef<'py, RasterState>>,
     verts: Arr<'py, T>,
     faces: Arr<'py, i32>,
     camera_args: CameraArgs,
@@ -81,6 +130,12 @@ fn rasterize_backward_typed<'py, T: Element + Real>(
     image_dims(&tri_id, "tri_id", 2, "(H, W)")?;
     shape_last(&v_bary, "v_bary", 3, 2, "(H, W, 2)")?;
     let cam = camera(camera_args)?;
+    let kept = match &state {
+        None => None,
+        Some(state) => Some(T::kept(&state.setup).ok_or_else(|| {
+            InvalidArgumentError::new_err("state: kept by a forward of another float dtype than verts")
+        })?),
+    };
     let (v, f, t, g) = (
         data(&verts, "verts")?,
         data(&faces, "faces")?,
@@ -88,7 +143,12 @@ fn rasterize_backward_typed<'py, T: Element + Real>(
         data(&v_bary, "v_bary")?,
     );
     let out = py
-        .allow_threads(|| with_threads(num_threads, || raster::rasterize_backward(v, f, &cam, t, g)))
+        .allow_threads(|| {
+            with_threads(num_threads, || match kept {
+                Some(kept) => raster::rasterize_backward_kept(kept, v, f, &cam, t, g),
+                None => raster::rasterize_backward(v, f, &cam, t, g),
+            })
+        })
         .map_err(py_err)?;
     array(py, out, &[nv, 3])
 }
@@ -361,7 +421,8 @@ pub fn edge_topology<'py>(
     array(py, out, &[nf, 3])
 }
 
-/// rasterize → (tri_id (H, W) int32, bary (H, W, 2), depth (H, W)).
+/// rasterize → (tri_id (H, W) int32, bary (H, W, 2), depth (H, W), state): the state keeps
+/// the triangles' setup for the backward.
 #[pyfunction]
 pub fn rasterize_forward<'py>(
     py: Python<'py>,
@@ -373,10 +434,12 @@ pub fn rasterize_forward<'py>(
     with_float_type!(verts, T => rasterize_forward_typed::<T>(py, verts.extract()?, faces, camera, num_threads))
 }
 
-/// rasterize backward → v_verts (V, 3).
+/// rasterize backward → v_verts (V, 3); with the forward's state (or None: set up again).
 #[pyfunction]
+#[allow(clippy::too_many_arguments)]
 pub fn rasterize_backward<'py>(
     py: Python<'py>,
+    state: Option<PyRef<'py, RasterState>>,
     verts: &Bound<'py, PyAny>,
     faces: Arr<'py, i32>,
     camera: CameraArgs,
@@ -386,6 +449,7 @@ pub fn rasterize_backward<'py>(
 ) -> PyResult<Bound<'py, PyAny>> {
     with_float_type!(verts, T => rasterize_backward_typed::<T>(
         py,
+        state,
         verts.extract()?,
         faces,
         camera,
@@ -682,6 +746,7 @@ pub fn scatter_pixels_backward<'py>(
 }
 
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_class::<RasterState>()?;
     m.add_function(wrap_pyfunction!(edge_topology, m)?)?;
     m.add_function(wrap_pyfunction!(rasterize_forward, m)?)?;
     m.add_function(wrap_pyfunction!(rasterize_backward, m)?)?;

@@ -56,7 +56,9 @@ pub use interpolate::{interpolate_backward, interpolate_forward, InterpolateGrad
 pub use pixels::{
     covered_pixels, scatter_pixels_backward, scatter_pixels_forward, ScatterGrads, ScatterInputs,
 };
-pub use rasterize::{rasterize_backward, rasterize_forward};
+pub use rasterize::{
+    rasterize_backward, rasterize_backward_kept, rasterize_forward, rasterize_forward_kept, RasterSetup,
+};
 pub use setup::{GUARD_BAND_PX, SUBPIXEL_BITS};
 pub use sh_texture::{
     sh_texture_backward, sh_texture_forward, ShTextureGradInputs, ShTextureGrads, ShTextureInputs,

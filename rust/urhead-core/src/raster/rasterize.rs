@@ -21,10 +21,36 @@ use crate::Real;
 /// Errors (before any work): wrong shapes, an empty mesh, face indices out of range,
 /// non-finite vertices.
 pub fn rasterize_forward<T: Real>(verts: &[T], faces: &[i32], camera: &Camera) -> Result<RasterImage<T>> {
+    Ok(rasterize_forward_kept(verts, faces, camera)?.0)
+}
+
+/// What a forward rasterization keeps for its backward: every triangle's setup (clipped,
+/// snapped, its barycentric planes), which [`rasterize_backward_kept`] reads instead of
+/// setting the triangles up again (a third of the backward's time at the paper's frame).
+pub struct RasterSetup<T> {
+    setup: Setup<T>,
+    num_faces: usize,
+    width: usize,
+    height: usize,
+}
+
+/// [`rasterize_forward`], also returning the [`RasterSetup`] its backward can reuse.
+pub fn rasterize_forward_kept<T: Real>(
+    verts: &[T],
+    faces: &[i32],
+    camera: &Camera,
+) -> Result<(RasterImage<T>, RasterSetup<T>)> {
     let hom = validate(verts, faces, camera)?;
     let vp = viewport(camera);
     let setup = setup_triangles::<T>(&hom, faces, &vp);
-    scan_tiles(&setup, &vp, T::c(camera.far as f64))
+    let image = scan_tiles(&setup, &vp, T::c(camera.far as f64))?;
+    let kept = RasterSetup {
+        setup,
+        num_faces: faces.len() / 3,
+        width: vp.width,
+        height: vp.height,
+    };
+    Ok((image, kept))
 }
 
 /// Gradient of a loss with respect to `verts (V, 3)` given its gradient `v_bary (H, W, 2)`
@@ -39,11 +65,60 @@ pub fn rasterize_backward<T: Real>(
 ) -> Result<Vec<T>> {
     let hom = validate(verts, faces, camera)?;
     let vp = viewport(camera);
+    check_backward_inputs(faces, &vp, tri_id, v_bary)?;
+    let setup = setup_triangles::<T>(&hom, faces, &vp);
+    backward_from_setup(&hom, &setup, faces, camera, &vp, tri_id, v_bary)
+}
+
+/// [`rasterize_backward`] with the setup `kept` by [`rasterize_forward_kept`] from the same
+/// `verts`, `faces` and `camera` (the same gradient, bit for bit). A setup of another mesh
+/// size or image size is refused; one of other vertices gives other gradients.
+pub fn rasterize_backward_kept<T: Real>(
+    kept: &RasterSetup<T>,
+    verts: &[T],
+    faces: &[i32],
+    camera: &Camera,
+    tri_id: &[i32],
+    v_bary: &[T],
+) -> Result<Vec<T>> {
+    let hom = validate(verts, faces, camera)?;
+    let vp = viewport(camera);
+    check_backward_inputs(faces, &vp, tri_id, v_bary)?;
+    if kept.num_faces != faces.len() / 3 || (kept.width, kept.height) != (vp.width, vp.height) {
+        return Err(Error::Shape {
+            arg: "setup",
+            expected: format!(
+                "the setup of {} faces at {}×{}",
+                faces.len() / 3,
+                vp.width,
+                vp.height
+            ),
+            got: format!(
+                "one of {} faces at {}×{}",
+                kept.num_faces, kept.width, kept.height
+            ),
+        });
+    }
+    backward_from_setup(&hom, &kept.setup, faces, camera, &vp, tri_id, v_bary)
+}
+
+fn check_backward_inputs<T: Real>(faces: &[i32], vp: &Viewport, tri_id: &[i32], v_bary: &[T]) -> Result<()> {
+    let (w, h) = (vp.width, vp.height);
+    check_tri_id(tri_id, h, w, faces.len() / 3)?;
+    check_len("v_bary", v_bary, h * w * 2, &format!("(H, W, 2) = ({h}, {w}, 2)"))
+}
+
+fn backward_from_setup<T: Real>(
+    hom: &[Hom],
+    setup: &Setup<T>,
+    faces: &[i32],
+    camera: &Camera,
+    vp: &Viewport,
+    tri_id: &[i32],
+    v_bary: &[T],
+) -> Result<Vec<T>> {
     let (w, h) = (vp.width, vp.height);
     let num_faces = faces.len() / 3;
-    check_tri_id(tri_id, h, w, num_faces)?;
-    check_len("v_bary", v_bary, h * w * 2, &format!("(H, W, 2) = ({h}, {w}, 2)"))?;
-    let setup = setup_triangles::<T>(&hom, faces, &vp);
 
     // Per pixel, the gradient g of the raw plane values λ̃_i = e·(h'_j × h'_k) is needed
     // only through the moments M_i = Σ_pixels g_i·e, e = (ex, ey, 1); so each tile
@@ -87,30 +162,39 @@ pub fn rasterize_backward<T: Real>(
         camera.cx as f64,
         camera.cy as f64,
     );
-    let mut v_cam = vec![0.0f64; verts.len()];
-    for (f, m) in moments.chunks_exact(9).enumerate() {
-        if m.iter().all(|x| *x == T::zero()) {
-            continue;
-        }
-        let Some(planes) = setup.planes(f) else {
-            continue;
-        };
-        let tri = &faces[3 * f..3 * f + 3];
-        let verts = [hom[tri[0] as usize], hom[tri[1] as usize], hom[tri[2] as usize]];
-        let Some(frame) = plane_frame(&verts, planes.origin) else {
-            continue;
-        };
-        let m: [[f64; 3]; 3] = map3(|i| map3(|k| m[3 * i + k].to_f64().unwrap_or(0.0) * frame.scale));
-        let g_hom = hom_gradients(&m, &frame.hom);
-        let (ox, oy) = (planes.origin[0] as f64, planes.origin[1] as f64);
-        for k in 0..3 {
-            let g = g_hom[k];
+    // Each face's three camera-space vertex gradients in parallel (each face's plane frame
+    // is f64 work), then added to the vertices serially in face order: the same sums in
+    // the same order as one serial loop.
+    let per_face: Vec<Option<[[f64; 3]; 3]>> = moments
+        .par_chunks_exact(9)
+        .with_min_len(256)
+        .enumerate()
+        .map(|(f, m)| {
+            if m.iter().all(|x| *x == T::zero()) {
+                return None;
+            }
+            let planes = setup.planes(f)?;
+            let tri = &faces[3 * f..3 * f + 3];
+            let verts = [hom[tri[0] as usize], hom[tri[1] as usize], hom[tri[2] as usize]];
+            let frame = plane_frame(&verts, planes.origin)?;
+            let m: [[f64; 3]; 3] = map3(|i| map3(|k| m[3 * i + k].to_f64().unwrap_or(0.0) * frame.scale));
+            let g_hom = hom_gradients(&m, &frame.hom);
+            let (ox, oy) = (planes.origin[0] as f64, planes.origin[1] as f64);
             // h' = (X − ox·W, Y − oy·W, W) and h = (fx·x + cx·z, fy·y + cy·z, z).
-            let (gx, gy, gw) = (g[0], g[1], g[2] - ox * g[0] - oy * g[1]);
-            let v = tri[k] as usize;
-            v_cam[3 * v] += fx * gx;
-            v_cam[3 * v + 1] += fy * gy;
-            v_cam[3 * v + 2] += cx * gx + cy * gy + gw;
+            Some(g_hom.map(|g| {
+                let (gx, gy, gw) = (g[0], g[1], g[2] - ox * g[0] - oy * g[1]);
+                [fx * gx, fy * gy, cx * gx + cy * gy + gw]
+            }))
+        })
+        .collect();
+    let mut v_cam = vec![0.0f64; 3 * hom.len()];
+    for (tri, grads) in faces.chunks_exact(3).zip(&per_face) {
+        let Some(grads) = grads else { continue };
+        for (&v, g) in tri.iter().zip(grads) {
+            let v = v as usize;
+            v_cam[3 * v] += g[0];
+            v_cam[3 * v + 1] += g[1];
+            v_cam[3 * v + 2] += g[2];
         }
     }
     Ok(camera_to_world_gradient(&v_cam, camera))
@@ -298,5 +382,36 @@ mod tests {
         check(&verts, &faces, &camera);
         let verts32: Vec<f32> = verts.iter().map(|&x| x as f32).collect();
         check(&verts32, &faces, &camera);
+    }
+
+    /// The backward from the forward's kept setup is the one that sets up again, bit for
+    /// bit; a setup of another image size is refused.
+    #[test]
+    fn the_kept_setup_gives_the_same_gradient_and_must_fit() {
+        let k = [[90.0, 0.0, 40.3], [0.0, 92.0, 37.9], [0.0, 0.0, 1.0]];
+        let view = [
+            [1.0, 0.0, 0.0, 0.02],
+            [0.0, 1.0, 0.0, -0.01],
+            [0.0, 0.0, 1.0, 0.15],
+            [0.0, 0.0, 0.0, 1.0],
+        ];
+        let camera = Camera::new(k, view, 83, 77, 0.01, 100.0).unwrap();
+        let (verts, faces) = sphere(12, 17, 0.05, 3);
+        let (image, kept) = rasterize_forward_kept(&verts, &faces, &camera).unwrap();
+        let v_bary: Vec<f64> = (0..image.bary.len())
+            .map(|i| ((i * 37 % 101) as f64 - 50.0) / 50.0)
+            .collect();
+        let again = rasterize_backward(&verts, &faces, &camera, &image.tri_id, &v_bary).unwrap();
+        let from_kept =
+            rasterize_backward_kept(&kept, &verts, &faces, &camera, &image.tri_id, &v_bary).unwrap();
+        assert!(again.iter().any(|g| *g != 0.0));
+        assert_eq!(
+            again.iter().map(|g| g.to_bits()).collect::<Vec<_>>(),
+            from_kept.iter().map(|g| g.to_bits()).collect::<Vec<_>>()
+        );
+        let wider = Camera::new(k, view, 84, 77, 0.01, 100.0).unwrap();
+        let (_, other) = rasterize_forward_kept(&verts, &faces, &wider).unwrap();
+        let refused = rasterize_backward_kept(&other, &verts, &faces, &camera, &image.tri_id, &v_bary);
+        assert!(matches!(refused, Err(Error::Shape { arg: "setup", .. })));
     }
 }
