@@ -310,6 +310,21 @@ def test_case34_maps_out_of_float16_range_get_no_float16_copy(stability):
     stability.checked(34, "maps beyond float16's range or non-finite: no float16 copy", 4)
 
 
+def test_case34_a_float16_copy_of_leading_channels_checks_only_those():
+    """``half_maps(tex, channels)`` copies the leading channels only, rounded as the whole
+    copy's; a value float16 cannot hold past them does not stop the copy."""
+    tex = torch.randn(5, 6, CHANNELS, generator=torch.Generator().manual_seed(3))
+    tex[2, 3, CHANNELS - 1] = 1.0e6
+    assert urhead.ops.half_maps(tex) is None
+    lead = urhead.ops.half_maps(tex, 48)
+    assert lead.shape == (5, 6, 48) and torch.equal(lead, tex[..., :48].half())
+    tex[0, 0, 47] = float("nan")
+    assert urhead.ops.half_maps(tex, 48) is None
+    for bad in (0, CHANNELS + 1, 2.0, True):
+        with pytest.raises(InvalidArgumentError, match="channels"):
+            urhead.ops.half_maps(tex, bad)
+
+
 def test_float16_texture_errors_are_named():
     tex, uv, dirs = _case(n=6, dtype=torch.float32)
     half = tex.half()
@@ -328,19 +343,28 @@ def test_float16_texture_errors_are_named():
 
 
 def test_avatar_reads_a_kept_float16_copy_only_while_its_maps_are_frozen():
-    """A frozen avatar's mesh branch reads one float16 copy of its maps, kept until the
-    maps are edited in place; a fit's maps (requiring grad, or with a gather) are read
-    as they are. The frozen image is within float16 rounding of the float32 one."""
+    """A frozen avatar's mesh branch reads one float16 copy of its maps' leading channels
+    (the colour, or up to the last extra channel asked for: a prefix, so indices are the
+    maps'), kept until the maps are edited in place or a wider prefix is asked for; a
+    fit's maps (requiring grad, or with a gather) are read as they are. The frozen image
+    is within float16 rounding of the float32 one."""
     avatar = make_avatar(procedural_head(0), gaussians=False, sh_degree=3)
-    maps = avatar.maps
+    layout, maps = avatar.layout, avatar.maps
     assert not maps.requires_grad
     copy = avatar.pixel_maps_source()
     assert copy.dtype == torch.float16 and avatar.pixel_maps_source() is copy
+    assert copy.shape == (*maps.shape[:2], layout.color.stop) < maps.shape
+    assert torch.equal(copy, maps[..., : layout.color.stop].half())
     assert avatar.pixel_maps_source(TextureGather(maps)) is maps
+    wider = avatar.pixel_maps_source(None, layout.normal)  # colour and normal: widened
+    assert wider.shape[-1] == layout.normal.stop
+    assert torch.equal(wider[..., : layout.color.stop], copy)
+    assert avatar.pixel_maps_source() is wider  # a wider prefix serves the colour alone
     with torch.no_grad():  # an in-place edit (values float16 cannot hold): the copy is stale
         maps += torch.randn(maps.shape, generator=torch.Generator().manual_seed(0)) * 0.1
     fresh = avatar.pixel_maps_source()
-    assert fresh is not copy and torch.allclose(fresh.float(), maps, rtol=2.0**-11, atol=1e-7)
+    assert fresh is not wider and fresh.shape[-1] == layout.color.stop
+    assert torch.allclose(fresh.float(), maps[..., : layout.color.stop], rtol=2.0**-11, atol=1e-7)
     params, cam = avatar.frame(3), camera(64)
     verts, rotations = avatar.skin(params)
     frozen = avatar.shade_mesh(verts, verts, rotations, cam, False).image

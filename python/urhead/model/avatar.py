@@ -294,18 +294,22 @@ class Avatar:
             kept["maps"] = (maps, maps._version)
         return kept
 
-    def pixel_maps_source(self, gather: TextureGather | None = None) -> torch.Tensor:
-        """The maps the mesh branch's covered pixels read: while the maps are frozen (no
-        gradient asked of them, no gather) a float16 copy, made once and kept until they
-        change — half the bytes for the pixels' random texel reads, the values within
-        float16 rounding (NUMERICS.md case 34); otherwise, or for maps out of float16's
-        range, the maps themselves."""
+    def pixel_maps_source(
+        self, gather: TextureGather | None = None, extra: slice | None = None
+    ) -> torch.Tensor:
+        """The maps the mesh branch's covered pixels read, the colour and ``extra``: while
+        the maps are frozen (no gradient asked of them, no gather) a float16 copy of the
+        channels up to the last of those (a prefix, so every channel keeps its index), made
+        once and kept until the maps change or a wider prefix is asked for — fewer bytes
+        for the pixels' random texel reads, the values within float16 rounding (NUMERICS.md
+        case 34); otherwise, or for maps out of float16's range, the maps themselves."""
         if gather is not None or self.maps.requires_grad or self.maps.dtype != torch.float32:
             return self.maps
+        stop = self.layout.color.stop if extra is None else max(self.layout.color.stop, extra.stop)
         kept = self._kept_for_maps()
-        if "float16" not in kept:
-            kept["float16"] = half_maps(self.maps)
-        half = kept["float16"]
+        if "float16" not in kept or kept["float16"][0] < stop:
+            kept["float16"] = (stop, half_maps(self.maps, stop))
+        half = kept["float16"][1]
         return self.maps if half is None else half
 
     def displace(self, verts, rotations, gather=None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -343,7 +347,7 @@ class Avatar:
         # whose backward does not read the maps again.
         extra = self._pixel_maps(want_normals)
         pixel_maps = sh_texture(
-            self.pixel_maps_source(gather),
+            self.pixel_maps_source(gather, extra),
             uv,
             local,
             self._sh_degree(sh_degree),

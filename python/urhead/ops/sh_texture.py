@@ -7,7 +7,7 @@ from __future__ import annotations
 import torch
 
 from urhead._threads import num_threads
-from urhead.errors import DTypeError, InvalidArgumentError
+from urhead.errors import DTypeError, InvalidArgumentError, ShapeError
 from urhead.ops._bridge import (
     check_shape,
     check_tensor,
@@ -148,7 +148,7 @@ HALF_MAX = 65504.0
 """The largest finite float16."""
 
 
-def half_maps(tex: torch.Tensor) -> torch.Tensor | None:
+def half_maps(tex: torch.Tensor, channels: int | None = None) -> torch.Tensor | None:
     """A float16 copy of a frozen float32 texture for :func:`sh_texture` to read (half the
     bytes: a rendered avatar's lookups are bound by the cache lines they read), or None
     when a value is non-finite or beyond float16's range (±65504): the caller keeps
@@ -157,13 +157,25 @@ def half_maps(tex: torch.Tensor) -> torch.Tensor | None:
 
     Args:
         tex: (Ht, Wt, C) float32, contiguous.
+        channels: copy the first ``channels`` only (default all): a prefix keeps every
+            channel index the same, so the copy serves any lookup of those channels with
+            fewer bytes a texel (the colour alone, without the maps only vertices and
+            Gaussians read: at the paper's 56 channels a 512² frame's lookups
+            5.74 → 5.37 ms for 48). Values past them are not checked.
 
     Returns:
-        (Ht, Wt, C) float16, or None."""
+        (Ht, Wt, channels or C) float16, or None."""
     check_tensor("tex", tex)
     if tex.dtype != torch.float32:
         raise DTypeError(f"tex must be float32, got {tex.dtype}")
-    detached = tex.detach()
+    if tex.ndim != 3:
+        raise ShapeError(f"tex must be (Ht, Wt, C), got shape {tuple(tex.shape)}")
+    total = tex.shape[-1]
+    if channels is None:
+        channels = total
+    if isinstance(channels, bool) or not isinstance(channels, int) or not 1 <= channels <= total:
+        raise InvalidArgumentError(f"channels must be an int in [1, {total}], got {channels!r}")
+    detached = tex.detach()[..., :channels]
     if detached.numel():
         low, high = torch.aminmax(detached)  # no |tex| temporary the size of the maps
         if not bool((low >= -HALF_MAX) & (high <= HALF_MAX)):  # False for NaN too
