@@ -8,6 +8,8 @@
 
 use std::mem::MaybeUninit;
 
+use rayon::prelude::*;
+
 use super::{Moment, SparseAdamState};
 use crate::error::{check_len, Error, Result};
 
@@ -83,11 +85,8 @@ impl<M: Moment> RowJournal<M> {
     /// of `rows` they are, with free space for their values: the step writes each one's
     /// row into its slot before changing it, then [`RowJournal::commit`] counts them in.
     pub(super) fn reserve(&mut self, rows: &[i64]) -> Result<(Vec<bool>, SaveSlots<'_, M>)> {
-        let new: Vec<bool> = rows
-            .iter()
-            .map(|&row| !std::mem::replace(&mut self.saved[row as usize], true))
-            .collect();
-        let count = new.iter().filter(|&&n| n).count();
+        let new = self.mark_saved(rows);
+        let count = new.par_iter().filter(|&&n| n).count();
         let c = self.channels;
         let row_bytes = 4 + 2 * std::mem::size_of::<M>();
         let too_large = |what| Error::OutOfMemory {
@@ -98,8 +97,13 @@ impl<M: Moment> RowJournal<M> {
         self.rows
             .try_reserve(count)
             .map_err(|_| too_large("journal rows"))?;
-        self.rows
-            .extend(rows.iter().zip(&new).filter(|(_, &n)| n).map(|(&r, _)| r));
+        let added: Vec<i64> = rows
+            .par_iter()
+            .zip(&new)
+            .filter(|(_, &n)| n)
+            .map(|(&r, _)| r)
+            .collect();
+        self.rows.extend_from_slice(&added);
         self.param
             .try_reserve(count * c)
             .map_err(|_| too_large("journal"))?;
@@ -116,6 +120,28 @@ impl<M: Moment> RowJournal<M> {
             steps: &mut self.steps.spare_capacity_mut()[..count],
         };
         Ok((new, slots))
+    }
+
+    /// Marks `rows` (strictly increasing, in range) saved; returns which were not. In
+    /// parallel over chunks of rows, each owning the slice of `saved` up to its last row
+    /// (a serial pass over a step's ~350k rows left the pool's other worker idle).
+    fn mark_saved(&mut self, rows: &[i64]) -> Vec<bool> {
+        const CHUNK: usize = 16_384;
+        let mut new = vec![false; rows.len()];
+        let mut work = Vec::with_capacity(rows.len().div_ceil(CHUNK));
+        let (mut saved, mut base) = (&mut self.saved[..], 0usize);
+        for (chunk, out) in rows.chunks(CHUNK).zip(new.chunks_mut(CHUNK)) {
+            let end = *chunk.last().expect("chunks are non-empty") as usize + 1;
+            let (head, tail) = std::mem::take(&mut saved).split_at_mut(end - base);
+            work.push((chunk, out, head, base));
+            (saved, base) = (tail, end);
+        }
+        work.into_par_iter().for_each(|(chunk, out, saved, base)| {
+            for (was_new, &row) in out.iter_mut().zip(chunk) {
+                *was_new = !std::mem::replace(&mut saved[row as usize - base], true);
+            }
+        });
+        new
     }
 
     /// Counts in the `count` rows [`RowJournal::reserve`] handed out, once all are written.

@@ -21,7 +21,7 @@ use rayon::prelude::*;
 
 use super::taps::{gradient_taps, uv_gradient, uv_gradient_ahead, TexShape, PREFETCH_DISTANCE, SAMPLE_CHUNK};
 use crate::error::Result;
-use crate::memory::{prefetch, zeroed};
+use crate::memory::{concatenated, prefetch, zeroed};
 use crate::Real;
 
 /// Target number of texel buckets (fewer for small textures).
@@ -188,7 +188,7 @@ pub(crate) fn texel_entries<'a, T: Real>(
     tex: &[T],
     segments: &[TextureSamples<'a, T>],
     v_uv: Option<&mut [T]>,
-) -> TexelEntries<'a, T> {
+) -> Result<TexelEntries<'a, T>> {
     let c = shape.channels;
     let buckets = Buckets::new(shape);
     let sample_chunks = sample_chunks(segments, c);
@@ -260,21 +260,39 @@ pub(crate) fn texel_entries<'a, T: Real>(
         })
         .collect();
     drop(chunks);
-    let entries = sorted.concat();
-    let mut starts: Vec<usize> = Vec::with_capacity(entries.len() / 2 + 1);
-    for (i, e) in entries.iter().enumerate() {
-        if i == 0 || entries[i - 1].texel != e.texel {
-            starts.push(i);
-        }
-    }
+    // Where each distinct texel's run starts, per bucket in parallel: a bucket's first
+    // entry always starts one (buckets hold disjoint texel ranges).
+    let mut first = 0;
+    let bucket_starts: Vec<usize> = sorted
+        .iter()
+        .map(|b| {
+            first += b.len();
+            first - b.len()
+        })
+        .collect();
+    let starts: Vec<Vec<usize>> = sorted
+        .par_iter()
+        .zip(&bucket_starts)
+        .map(|(bucket, &first)| {
+            let mut starts = Vec::with_capacity(bucket.len());
+            for (i, e) in bucket.iter().enumerate() {
+                if i == 0 || bucket[i - 1].texel != e.texel {
+                    starts.push(first + i);
+                }
+            }
+            starts
+        })
+        .collect();
+    let entries = concatenated("texel entries", &sorted)?;
+    let mut starts = concatenated("texel entry starts", &starts)?;
     starts.push(entries.len());
-    TexelEntries {
+    Ok(TexelEntries {
         entries,
         starts,
         chunk_rows: sample_chunks.iter().map(|chunk| chunk.v_out).collect(),
         texel_count: shape.height * shape.width,
         channels: c,
-    }
+    })
 }
 
 /// The sparse texel gradient of `v_out (N, C)`; fills `v_uv (N, 2)` in the same pass over
@@ -287,7 +305,7 @@ pub(crate) fn sparse_texel_gradient<T: Real>(
     v_uv: Option<&mut [T]>,
 ) -> Result<SparseTexels<T>> {
     let c = shape.channels;
-    let texels = texel_entries(shape, tex, &[TextureSamples { uv, v_out }], v_uv);
+    let texels = texel_entries(shape, tex, &[TextureSamples { uv, v_out }], v_uv)?;
     let nnz = texels.len();
 
     // 3. Each texel's sum into disjoint slices of the output, in fixed blocks of texels.

@@ -156,7 +156,7 @@ pub fn texture_gradient_entries<'a, T: Real>(
         chunks += n.div_ceil(SAMPLE_CHUNK);
     }
     check_sample_chunks(chunks)?;
-    Ok(texel_entries(&shape, &[], segments, None)) // the texture is read for v_uv only
+    texel_entries(&shape, &[], segments, None) // the texture is read for v_uv only
 }
 
 /// The texture gradient's entries number samples in u32, chunk by chunk (a segment's
