@@ -63,11 +63,7 @@ pub fn rasterize_backward<T: Real>(
     tri_id: &[i32],
     v_bary: &[T],
 ) -> Result<Vec<T>> {
-    let hom = validate(verts, faces, camera)?;
-    let vp = viewport(camera);
-    check_backward_inputs(faces, &vp, tri_id, v_bary)?;
-    let setup = setup_triangles::<T>(&hom, faces, &vp);
-    backward_from_setup(&hom, &setup, faces, camera, &vp, tri_id, v_bary)
+    backward(None, verts, faces, camera, tri_id, v_bary)
 }
 
 /// [`rasterize_backward`] with the setup `kept` by [`rasterize_forward_kept`] from the same
@@ -81,25 +77,47 @@ pub fn rasterize_backward_kept<T: Real>(
     tri_id: &[i32],
     v_bary: &[T],
 ) -> Result<Vec<T>> {
+    backward(Some(kept), verts, faces, camera, tri_id, v_bary)
+}
+
+/// Both backwards: checks, then the triangles' setup `kept` or made again.
+fn backward<T: Real>(
+    kept: Option<&RasterSetup<T>>,
+    verts: &[T],
+    faces: &[i32],
+    camera: &Camera,
+    tri_id: &[i32],
+    v_bary: &[T],
+) -> Result<Vec<T>> {
     let hom = validate(verts, faces, camera)?;
     let vp = viewport(camera);
     check_backward_inputs(faces, &vp, tri_id, v_bary)?;
-    if kept.num_faces != faces.len() / 3 || (kept.width, kept.height) != (vp.width, vp.height) {
-        return Err(Error::Shape {
-            arg: "setup",
-            expected: format!(
-                "the setup of {} faces at {}×{}",
-                faces.len() / 3,
-                vp.width,
-                vp.height
-            ),
-            got: format!(
-                "one of {} faces at {}×{}",
-                kept.num_faces, kept.width, kept.height
-            ),
-        });
-    }
-    backward_from_setup(&hom, &kept.setup, faces, camera, &vp, tri_id, v_bary)
+    let made;
+    let setup = match kept {
+        Some(kept)
+            if kept.num_faces != faces.len() / 3 || (kept.width, kept.height) != (vp.width, vp.height) =>
+        {
+            return Err(Error::Shape {
+                arg: "setup",
+                expected: format!(
+                    "the setup of {} faces at {}×{}",
+                    faces.len() / 3,
+                    vp.width,
+                    vp.height
+                ),
+                got: format!(
+                    "one of {} faces at {}×{}",
+                    kept.num_faces, kept.width, kept.height
+                ),
+            });
+        }
+        Some(kept) => &kept.setup,
+        None => {
+            made = setup_triangles::<T>(&hom, faces, &vp);
+            &made
+        }
+    };
+    backward_from_setup(&hom, setup, faces, camera, &vp, tri_id, v_bary)
 }
 
 fn check_backward_inputs<T: Real>(faces: &[i32], vp: &Viewport, tri_id: &[i32], v_bary: &[T]) -> Result<()> {
