@@ -6,6 +6,7 @@
 //! too large for memory is an error the caller sees, never an abort.
 
 use std::alloc::Layout;
+use std::marker::PhantomData;
 
 use rayon::prelude::*;
 
@@ -254,6 +255,43 @@ pub fn concatenated<T: Copy + Send + Sync>(what: &'static str, parts: &[Vec<T>])
     // `total` elements, were each written whole from their part of the same length.
     unsafe { buf.set_len(total) };
     Ok(buf)
+}
+
+/// A slice several threads write at once, each index by exactly one of them: the scatter
+/// of a parallel counting sort, whose destinations are disjoint by construction but not
+/// contiguous per thread (so the slice cannot be split into `&mut` parts).
+pub struct DisjointWrites<'a, T> {
+    ptr: *mut T,
+    len: usize,
+    _slice: PhantomData<&'a mut [T]>,
+}
+
+// SAFETY: the wrapper only hands out writes of `T` values to distinct indices (the
+// caller's guarantee, see `write`), which is what sending `T`s to those threads means.
+unsafe impl<T: Send> Send for DisjointWrites<'_, T> {}
+// SAFETY: as above; shared access only writes, and never twice to one index.
+unsafe impl<T: Send> Sync for DisjointWrites<'_, T> {}
+
+impl<'a, T> DisjointWrites<'a, T> {
+    pub fn new(slice: &'a mut [T]) -> Self {
+        Self {
+            ptr: slice.as_mut_ptr(),
+            len: slice.len(),
+            _slice: PhantomData,
+        }
+    }
+
+    /// `slice[index] = value`; an index out of range panics.
+    ///
+    /// # Safety
+    /// No other thread reads or writes `index` while the wrapper lives.
+    #[inline(always)]
+    pub unsafe fn write(&self, index: usize, value: T) {
+        assert!(index < self.len, "index {index} out of {}", self.len);
+        // SAFETY: in bounds (checked), the slice is borrowed mutably for `'a`, and no
+        // other thread touches this index (the caller's contract).
+        unsafe { self.ptr.add(index).write(value) };
+    }
 }
 
 /// `dst[..n] = src[..n]` element by element, for rows of a handful of elements (a

@@ -11,8 +11,11 @@ use rayon::prelude::*;
 
 use super::{RasterInputs, MAX_INTERSECTIONS, TILE};
 use crate::error::{Error, Result};
-use crate::memory::zeroed;
+use crate::memory::{zeroed, DisjointWrites};
 use crate::Real;
+
+/// Gaussians of the depth order per parallel task of the counting sort's scatter.
+const FILL_CHUNK: usize = 2048;
 
 /// Tile lists and their inverse. Built by [`Binning::new`], reused by the backward.
 #[derive(Debug, Clone)]
@@ -86,27 +89,31 @@ impl Binning {
             .map(|depth| deepest_limits(inputs, depth, tiles_x, tiles_y));
         let listed = |g: usize, tile: usize| deepest.as_ref().is_none_or(|d| inputs.depths[g] <= d[tile]);
         // One pass over every Gaussian's listed tiles, in chunks: its own count, and each
-        // tile's (integer counts per chunk, summed: independent of the chunking).
+        // tile's (integer counts per chunk, summed: independent of the chunking). The
+        // front-to-back order (a serial sort) is made at the same time.
         const CHUNK: usize = 4096;
-        let chunks: Vec<(Vec<u32>, Vec<u32>)> = (0..n.div_ceil(CHUNK))
-            .into_par_iter()
-            .map(|chunk| {
-                let mut tiles = vec![0u32; num_tiles];
-                let per_gaussian = (chunk * CHUNK..((chunk + 1) * CHUNK).min(n))
-                    .map(|g| {
-                        let mut count = 0u32;
-                        for_each_tile(rects[g], tiles_x, |tile| {
-                            if listed(g, tile) {
-                                tiles[tile] += 1;
-                                count += 1;
-                            }
-                        });
-                        count
-                    })
-                    .collect();
-                (per_gaussian, tiles)
-            })
-            .collect();
+        let count_chunks = || -> Vec<(Vec<u32>, Vec<u32>)> {
+            (0..n.div_ceil(CHUNK))
+                .into_par_iter()
+                .map(|chunk| {
+                    let mut tiles = vec![0u32; num_tiles];
+                    let per_gaussian = (chunk * CHUNK..((chunk + 1) * CHUNK).min(n))
+                        .map(|g| {
+                            let mut count = 0u32;
+                            for_each_tile(rects[g], tiles_x, |tile| {
+                                if listed(g, tile) {
+                                    tiles[tile] += 1;
+                                    count += 1;
+                                }
+                            });
+                            count
+                        })
+                        .collect();
+                    (per_gaussian, tiles)
+                })
+                .collect()
+        };
+        let (order, chunks) = rayon::join(|| depth_order(inputs, &rects), count_chunks);
         let mut gaussian_offsets = Vec::with_capacity(n + 1);
         gaussian_offsets.push(0u32);
         let mut tile_counts = vec![0u32; num_tiles];
@@ -119,27 +126,64 @@ impl Binning {
             }
         }
         let total = *gaussian_offsets.last().unwrap() as usize;
-        let order = depth_order(inputs, &rects);
         let mut tile_offsets = Vec::with_capacity(num_tiles + 1);
         tile_offsets.push(0u32);
         for c in &tile_counts {
             tile_offsets.push(tile_offsets.last().unwrap() + c);
         }
+        // The counting sort's scatter in parallel chunks of the depth order: a chunk's
+        // intersections in a tile go after the earlier chunks' (counted first), so every
+        // position is the one a serial pass in depth order gives.
+        let order_chunks: Vec<&[u32]> = order.chunks(FILL_CHUNK).collect();
+        let chunk_counts: Vec<Vec<u32>> = order_chunks
+            .par_iter()
+            .map(|chunk| {
+                let mut counts = vec![0u32; num_tiles];
+                for &g in *chunk {
+                    for_each_tile(rects[g as usize], tiles_x, |tile| {
+                        counts[tile] += u32::from(listed(g as usize, tile));
+                    });
+                }
+                counts
+            })
+            .collect();
         let mut cursor: Vec<u32> = tile_offsets[..num_tiles].to_vec();
+        let mut cursors = Vec::with_capacity(chunk_counts.len());
+        for counts in &chunk_counts {
+            cursors.push(cursor.clone());
+            for (c, k) in cursor.iter_mut().zip(counts) {
+                *c += k;
+            }
+        }
         let mut tile_gaussians: Vec<u32> = zeroed("tile intersections", total)?;
         let mut isect_of_gaussian: Vec<u32> = zeroed("intersection order", total)?;
-        for &g in &order {
-            let mut slot = gaussian_offsets[g as usize] as usize;
-            for_each_tile(rects[g as usize], tiles_x, |tile| {
-                if listed(g as usize, tile) {
-                    let pos = cursor[tile];
-                    cursor[tile] += 1;
-                    tile_gaussians[pos as usize] = g;
-                    isect_of_gaussian[slot] = pos;
-                    slot += 1;
+        let (tile_out, isect_out) = (
+            DisjointWrites::new(&mut tile_gaussians),
+            DisjointWrites::new(&mut isect_of_gaussian),
+        );
+        order_chunks
+            .into_par_iter()
+            .zip(cursors)
+            .for_each(|(chunk, mut cursor)| {
+                for &g in chunk {
+                    let mut slot = gaussian_offsets[g as usize] as usize;
+                    for_each_tile(rects[g as usize], tiles_x, |tile| {
+                        if listed(g as usize, tile) {
+                            let pos = cursor[tile];
+                            cursor[tile] += 1;
+                            // SAFETY: `pos` is in this chunk's own range of the tile's
+                            // list (the chunks' cursors start where the earlier chunks'
+                            // counts end), and `slot` in this Gaussian's own range of
+                            // `isect_of_gaussian` (each Gaussian is in one chunk).
+                            unsafe {
+                                tile_out.write(pos as usize, g);
+                                isect_out.write(slot, pos);
+                            }
+                            slot += 1;
+                        }
+                    });
                 }
             });
-        }
         Ok(Self {
             tiles_x,
             tiles_y,
@@ -269,6 +313,59 @@ fn depth_key<T: Real>(d: T) -> u64 {
 mod tests {
     use super::*;
     use crate::testing::Rng;
+
+    /// The tile lists and their inverse, built in parallel chunks of the depth order, are
+    /// the serial definition's: each tile's listed Gaussians by (depth, index), and each
+    /// Gaussian's intersections in row-major tile order — on any thread count, for a scene
+    /// of several chunks with a depth map that hides some tiles.
+    #[test]
+    fn lists_are_the_definitions_on_any_thread_count() {
+        use crate::splat::{project_forward, synthetic::SyntheticSplat};
+        use crate::testing::on_threads;
+        let s = SyntheticSplat::<f32>::head(3 * FILL_CHUNK + 77, 96, 0.75, 4);
+        let proj = project_forward(&s.camera, &s.inputs(Some(0))).unwrap();
+        let px = 96 * 96;
+        let depth: Vec<f32> = (0..px).map(|i| if i % 96 < 40 { 0.74 } else { 10.0 }).collect();
+        let inputs = s.raster_inputs(&proj, None, Some(&depth), 0.01);
+        let (tiles_x, tiles_y) = (96usize.div_ceil(TILE), 96usize.div_ceil(TILE));
+        let deepest = deepest_limits(&inputs, &depth, tiles_x, tiles_y);
+        let mut expected: Vec<Vec<u32>> = vec![Vec::new(); tiles_x * tiles_y];
+        for g in 0..inputs.num_gaussians {
+            for_each_tile(tile_rect(&inputs, g, tiles_x, tiles_y), tiles_x, |tile| {
+                if inputs.depths[g] <= deepest[tile] {
+                    expected[tile].push(g as u32);
+                }
+            });
+        }
+        for list in &mut expected {
+            list.sort_by(|&a, &b| {
+                inputs.depths[a as usize]
+                    .total_cmp(&inputs.depths[b as usize])
+                    .then(a.cmp(&b))
+            });
+        }
+        assert!(expected.iter().map(Vec::len).sum::<usize>() > 2 * FILL_CHUNK);
+        for threads in [1, 3] {
+            let b = on_threads(threads, || Binning::new(&inputs).unwrap());
+            for (tile, list) in expected.iter().enumerate() {
+                let got = &b.tile_gaussians[b.tile_offsets[tile] as usize..b.tile_offsets[tile + 1] as usize];
+                assert_eq!(got, &list[..], "tile {tile}, {threads} threads");
+            }
+            for g in 0..inputs.num_gaussians {
+                let own =
+                    &b.isect_of_gaussian[b.gaussian_offsets[g] as usize..b.gaussian_offsets[g + 1] as usize];
+                let tiles: Vec<usize> = own
+                    .iter()
+                    .map(|&pos| b.tile_offsets.partition_point(|&o| o <= pos) - 1)
+                    .collect();
+                assert!(own.iter().all(|&pos| b.tile_gaussians[pos as usize] == g as u32));
+                assert!(
+                    tiles.windows(2).all(|w| w[0] < w[1]),
+                    "Gaussian {g}: row-major tiles"
+                );
+            }
+        }
+    }
 
     #[test]
     fn radix_order_is_the_sorted_order() {
