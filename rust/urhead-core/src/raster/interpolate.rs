@@ -297,9 +297,12 @@ impl<'a, T: Real> Inputs<'a, T> {
     /// where the pixels move to another tile), merged in block order.
     fn attr_grad<S: Sites, K: Channels>(&self, sites: S, width: K, v_out: &[T]) -> Vec<T> {
         let (c, tile_len) = (width.get(), self.tile_len());
+        // A task per block, as the rasterizer's backward (−0.15 ms, faster in 147 of 150,
+        // the skinning rotations' backward at a real step alone).
         let runs: Vec<TriangleRuns<T>> = sites
             .blocks(tile_len)
             .into_par_iter()
+            .with_max_len(1)
             .map(|block| {
                 let mut runs = TriangleRuns::new(3 * c);
                 let mut run_tile = 0..0;
