@@ -135,14 +135,20 @@ pub fn filled<T: Clone>(what: &'static str, len: usize, value: T) -> Result<Vec<
 /// instead of an abort when the allocator refuses.
 pub fn refill<T: Clone>(buf: &mut Vec<T>, what: &'static str, len: usize, value: T) -> Result<()> {
     buf.clear();
-    buf.try_reserve_exact(len).map_err(|_| Error::OutOfMemory {
-        what,
-        elements: len,
-        bytes: len as u128 * std::mem::size_of::<T>() as u128,
-    })?;
+    reserve_exact(buf, what, len)?;
     buf.resize(len, value);
     advise_huge_pages(buf);
     Ok(())
+}
+
+/// Room for `additional` more elements in `buf` (`try_reserve_exact`): `Err(OutOfMemory)`
+/// naming `what` instead of an abort when the allocator refuses.
+fn reserve_exact<T>(buf: &mut Vec<T>, what: &'static str, additional: usize) -> Result<()> {
+    buf.try_reserve_exact(additional).map_err(|_| Error::OutOfMemory {
+        what,
+        elements: additional,
+        bytes: additional as u128 * std::mem::size_of::<T>() as u128,
+    })
 }
 
 /// Asks the kernel to back the whole 2 MiB pages inside `buf` with huge pages. Only
@@ -208,11 +214,7 @@ fn discard_pages(_start: usize, _len: usize) {}
 pub fn copied<T: Copy + Send + Sync>(what: &'static str, src: &[T]) -> Result<Vec<T>> {
     const CHUNK: usize = 32 << 10;
     let mut buf: Vec<T> = Vec::new();
-    buf.try_reserve_exact(src.len()).map_err(|_| Error::OutOfMemory {
-        what,
-        elements: src.len(),
-        bytes: src.len() as u128 * std::mem::size_of::<T>() as u128,
-    })?;
+    reserve_exact(&mut buf, what, src.len())?;
     advise_huge_pages_of(buf.as_ptr() as usize, std::mem::size_of_val(src));
     buf.spare_capacity_mut()[..src.len()]
         .par_chunks_mut(CHUNK)
@@ -234,11 +236,7 @@ pub fn copied<T: Copy + Send + Sync>(what: &'static str, src: &[T]) -> Result<Ve
 pub fn concatenated<T: Copy + Send + Sync>(what: &'static str, parts: &[Vec<T>]) -> Result<Vec<T>> {
     let total: usize = parts.iter().map(Vec::len).sum();
     let mut buf: Vec<T> = Vec::new();
-    buf.try_reserve_exact(total).map_err(|_| Error::OutOfMemory {
-        what,
-        elements: total,
-        bytes: total as u128 * std::mem::size_of::<T>() as u128,
-    })?;
+    reserve_exact(&mut buf, what, total)?;
     let mut places = Vec::with_capacity(parts.len());
     let mut rest = &mut buf.spare_capacity_mut()[..total];
     for part in parts {

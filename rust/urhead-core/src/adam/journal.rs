@@ -97,13 +97,8 @@ impl<M: Moment> RowJournal<M> {
         self.rows
             .try_reserve(count)
             .map_err(|_| too_large("journal rows"))?;
-        let added: Vec<i64> = rows
-            .par_iter()
-            .zip(&new)
-            .filter(|(_, &n)| n)
-            .map(|(&r, _)| r)
-            .collect();
-        self.rows.extend_from_slice(&added);
+        self.rows
+            .par_extend(rows.par_iter().zip(&new).filter(|(_, &n)| n).map(|(&r, _)| r));
         self.param
             .try_reserve(count * c)
             .map_err(|_| too_large("journal"))?;
