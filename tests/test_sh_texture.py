@@ -31,6 +31,11 @@ def _case(n=300, size=(9, 7), dtype=F64, seed=0, spread=(-0.1, 1.1)):
     return tex.to(dtype), uv.to(dtype), dirs.to(dtype)
 
 
+def _joined(fn):
+    """``fn`` (the op or its reference) with its two parts joined: (P, 3 + E)."""
+    return lambda *args, **kwargs: torch.cat(fn(*args, **kwargs), 1)
+
+
 def _recorded(gather: TextureGather) -> tuple[torch.Tensor, torch.Tensor]:
     """The gather's recorded lookups joined: (uv (M, 2), v_out (M, C))."""
     uv, v_out = zip(*gather.samples(), strict=True)
@@ -53,17 +58,37 @@ def test_matches_reference_float64(degree, extra):
     tex, uv, dirs = _case(seed=degree)
     width = 3 + (0 if extra is None else extra.stop - extra.start)
     weights = torch.randn(300, width, generator=torch.Generator().manual_seed(1), dtype=F64)
-    ours = _run(sh_texture, tex, uv, dirs, degree, extra, weights)
-    ref = _run(_reference.sh_texture, tex, uv, dirs, degree, extra, weights)
+    ours = _run(_joined(sh_texture), tex, uv, dirs, degree, extra, weights)
+    ref = _run(_joined(_reference.sh_texture), tex, uv, dirs, degree, extra, weights)
     assert ours[0].shape == (300, width)
     for a, b in zip(ours, ref, strict=True):
         assert (a - b).abs().max() <= 1e-13 * (1 + b.abs().max())
 
 
+@pytest.mark.parametrize("used", ["rgb", "extra"])
+def test_a_part_the_loss_does_not_use_is_a_zero_gradient(used):
+    """The colour and the extra channels are two outputs: a loss of one of them sends the
+    backward no gradient for the other (None), which must act as zeros, bit for bit."""
+    tex, uv, dirs = _case(seed=4, dtype=torch.float32)
+    weights = torch.randn(300, 6, generator=torch.Generator().manual_seed(2))
+    part = slice(0, 3) if used == "rgb" else slice(3, 6)
+    zeroed = torch.zeros_like(weights)
+    zeroed[:, part] = weights[:, part]
+
+    def one_part(t, u, dirs, degree, extra):
+        rgb, extra_values = sh_texture(t, u, dirs, degree, extra)
+        return rgb if used == "rgb" else extra_values
+
+    _, g_tex, g_uv = _run(one_part, tex, uv, dirs, 3, NORMAL, weights[:, part])
+    _, g_tex0, g_uv0 = _run(_joined(sh_texture), tex, uv, dirs, 3, NORMAL, zeroed)
+    assert torch.equal(g_tex, g_tex0) and torch.equal(g_uv, g_uv0)
+    assert g_uv.ne(0).any()
+
+
 def test_gradcheck_uv_float64():
     tex, uv, dirs = _case(n=40, size=(5, 4), seed=2, spread=(0.1, 0.9))
     u = uv.requires_grad_(True)
-    assert torch.autograd.gradcheck(lambda u: sh_texture(tex, u, dirs, 3, NORMAL), (u,))
+    assert torch.autograd.gradcheck(lambda u: _joined(sh_texture)(tex, u, dirs, 3, NORMAL), (u,))
 
 
 def test_float32_is_the_lookup_then_shading_bit_for_bit():
@@ -77,7 +102,7 @@ def test_float32_is_the_lookup_then_shading_bit_for_bit():
         gather = TextureGather(maps)
         u = uv.clone().requires_grad_(True)
         if fused:
-            out = sh_texture(maps, u, dirs, 3, NORMAL, gather=gather)
+            out = _joined(sh_texture)(maps, u, dirs, 3, NORMAL, gather=gather)
         else:
             rows = gather.sample(u)
             out = torch.cat([sh_shade(rows, dirs, 3), rows[:, NORMAL]], 1)
@@ -99,8 +124,8 @@ def test_case7_special_coordinates(size, stability):
     tex, _, _ = _case(size=size, seed=5)
     dirs = torch.nn.functional.normalize(torch.ones(len(uv), 3, dtype=F64), dim=1)
     weights = torch.ones(len(uv), 6, dtype=F64)
-    out, g_tex, g_uv = _run(sh_texture, tex, uv, dirs, 3, NORMAL, weights)
-    expected = _reference.sh_texture(tex, uv, dirs, 3, NORMAL)
+    out, g_tex, g_uv = _run(_joined(sh_texture), tex, uv, dirs, 3, NORMAL, weights)
+    expected = _joined(_reference.sh_texture)(tex, uv, dirs, 3, NORMAL)
     stability.record(
         7, "sh_texture: max abs error vs float64 reference", (out - expected).abs().max(), 1e-14
     )
@@ -120,7 +145,9 @@ def test_clamped_colour_passes_no_gradient():
     tex[0, 0, 48] = 1.0
     uv = torch.tensor([[0.3, 0.6], [0.7, 0.2]], dtype=F64)
     dirs = torch.tensor([[0.0, 0.0, 1.0]] * 2, dtype=F64)
-    out, g_tex, g_uv = _run(sh_texture, tex, uv, dirs, 0, NORMAL, torch.ones(2, 6, dtype=F64))
+    out, g_tex, g_uv = _run(
+        _joined(sh_texture), tex, uv, dirs, 0, NORMAL, torch.ones(2, 6, dtype=F64)
+    )
     assert out[:, 0].eq(0).all() and out[:, 1:3].eq(0.5).all()
     assert g_tex[..., 0].eq(0).all() and g_tex[..., 1].ne(0).any()
     # Only the normal's channel 48 varies, so it alone moves the UV gradient.
@@ -132,13 +159,13 @@ def test_clamped_colour_passes_no_gradient():
 def test_only_the_requested_gradients_and_no_graph_without_them():
     tex, uv, dirs = _case(n=50, dtype=torch.float32, seed=6)
     t = tex.clone().requires_grad_(True)
-    out = sh_texture(t, uv, dirs, 2, NORMAL)
+    out = _joined(sh_texture)(t, uv, dirs, 2, NORMAL)
     out.sum().backward()
     assert t.grad.is_sparse and t.grad.shape == tex.shape
     u = uv.clone().requires_grad_(True)
-    sh_texture(tex, u, dirs, 2).sum().backward()
+    _joined(sh_texture)(tex, u, dirs, 2).sum().backward()
     assert u.grad.shape == (50, 2)
-    assert not sh_texture(tex, uv, dirs, 2).requires_grad
+    assert not _joined(sh_texture)(tex, uv, dirs, 2).requires_grad
 
 
 def test_same_bits_for_any_thread_count(monkeypatch, stability):
@@ -150,7 +177,7 @@ def test_same_bits_for_any_thread_count(monkeypatch, stability):
         maps = tex.clone().requires_grad_(True)
         gather = TextureGather(maps)
         u = uv.clone().requires_grad_(True)
-        out = sh_texture(maps, u, dirs, 3, NORMAL, gather=gather)
+        out = _joined(sh_texture)(maps, u, dirs, 3, NORMAL, gather=gather)
         (out * weights).sum().backward()
         results.append((out.detach(), _recorded(gather)[1], u.grad))
     for run in results[1:]:
@@ -160,7 +187,7 @@ def test_same_bits_for_any_thread_count(monkeypatch, stability):
 
 def test_bad_input_is_a_named_error(stability):
     tex, uv, dirs = _case(n=6, dtype=torch.float32)
-    sh_texture(tex, uv, dirs, 3, NORMAL)
+    _joined(sh_texture)(tex, uv, dirs, 3, NORMAL)
     other = TextureGather(tex.clone())
     bad = [
         (ShapeError, "tex", (tex[0], uv, dirs, 3), {}),
@@ -178,18 +205,18 @@ def test_bad_input_is_a_named_error(stability):
     ]
     for error, name, args, kwargs in bad:
         with pytest.raises(error, match=name):
-            sh_texture(*args, **kwargs)
+            _joined(sh_texture)(*args, **kwargs)
     nan_dirs = dirs.clone()
     nan_dirs[2, 1] = float("nan")
     with pytest.raises(NonFiniteError, match="dirs"):
-        sh_texture(tex, uv, nan_dirs, 3)
+        _joined(sh_texture)(tex, uv, nan_dirs, 3)
     nan_tex = tex.clone()
     nan_tex[:] = float("inf")
     with pytest.raises(NonFiniteError, match="tex"):
-        sh_texture(nan_tex, uv, dirs, 3)
+        _joined(sh_texture)(nan_tex, uv, dirs, 3)
     # No samples: empty values and gradients.
     u = torch.zeros(0, 2, requires_grad=True)
-    out = sh_texture(tex, u, torch.zeros(0, 3), 3, NORMAL)
+    out = _joined(sh_texture)(tex, u, torch.zeros(0, 3), 3, NORMAL)
     out.sum().backward()
     assert out.shape == (0, 6) and u.grad.shape == (0, 2)
     stability.checked(
@@ -200,7 +227,7 @@ def test_bad_input_is_a_named_error(stability):
 def _lookup_then_shade(maps, uv, dirs, degree, extra=None, *, gather=None):
     """What the mesh branch computed before the fused op: the whole rows, then the parts."""
     rows = texture(maps, uv) if gather is None else gather.sample(uv)
-    return torch.cat([sh_shade(rows, dirs, degree), rows[:, extra or slice(0, 0)]], 1)
+    return sh_shade(rows, dirs, degree), rows[:, extra or slice(0, 0)]
 
 
 @pytest.mark.parametrize("shading", [False, True])
@@ -251,7 +278,7 @@ def test_case34_a_float16_texture_reads_as_its_float32_widening_exactly(stabilit
     results = []
     for source in (half, half.float()):
         u = uv.clone().requires_grad_(True)
-        out = sh_texture(source, u, dirs, 3, NORMAL)
+        out = _joined(sh_texture)(source, u, dirs, 3, NORMAL)
         (out * weights).sum().backward()
         results.append((out.detach(), u.grad))
     assert torch.equal(results[0][0], results[1][0])
@@ -276,8 +303,8 @@ def test_case34_float16_maps_stay_within_float16_rounding(degree, stability):
     half = urhead.ops.half_maps(tex)
     assert half is not None and half.dtype == torch.float16
     assert torch.equal(half, tex.to(torch.float16))  # rounded to nearest, as torch casts
-    ours = sh_texture(half, uv, dirs, degree, NORMAL).double()
-    exact = _reference.sh_texture(tex.double(), uv.double(), dirs.double(), degree, NORMAL)
+    ours = _joined(sh_texture)(half, uv, dirs, degree, NORMAL).double()
+    exact = _joined(_reference.sh_texture)(tex.double(), uv.double(), dirs.double(), degree, NORMAL)
     # Bound: Σ_k |b_k| · Σ_taps w · r(|c|), r(x) = max(x·2⁻¹¹, 2⁻²⁵), plus float32
     # arithmetic on the result (2⁻²³ relative of the terms' size, a few operations).
     rounding = torch.clamp(tex.double().abs() * 2.0**-11, min=2.0**-25)
@@ -329,17 +356,17 @@ def test_float16_texture_errors_are_named():
     tex, uv, dirs = _case(n=6, dtype=torch.float32)
     half = tex.half()
     with pytest.raises(InvalidArgumentError, match="float16 tex is read-only"):
-        sh_texture(half.clone().requires_grad_(True), uv, dirs, 3)
+        _joined(sh_texture)(half.clone().requires_grad_(True), uv, dirs, 3)
     with pytest.raises(InvalidArgumentError, match="float16 tex is read-only"):
-        sh_texture(half, uv, dirs, 3, gather=TextureGather(tex))
+        _joined(sh_texture)(half, uv, dirs, 3, gather=TextureGather(tex))
     with pytest.raises(DTypeError, match=r"uv must be torch\.float32"):
-        sh_texture(half, uv.double(), dirs, 3)
+        _joined(sh_texture)(half, uv.double(), dirs, 3)
     with pytest.raises(DTypeError, match="float32"):
         urhead.ops.half_maps(tex.double())
     inf_tex = half.clone()
     inf_tex[:] = float("inf")
     with pytest.raises(NonFiniteError, match="tex"):
-        sh_texture(inf_tex, uv, dirs, 3)
+        _joined(sh_texture)(inf_tex, uv, dirs, 3)
 
 
 def test_avatar_reads_a_kept_float16_copy_only_while_its_maps_are_frozen():

@@ -346,7 +346,7 @@ class Avatar:
         # The colour and the few other maps the pixels need, in one pass over their texels
         # whose backward does not read the maps again.
         extra = self._pixel_maps(want_normals)
-        pixel_maps = sh_texture(
+        rgb, pixel_maps = sh_texture(
             self.pixel_maps_source(gather, extra),
             uv,
             local,
@@ -354,9 +354,8 @@ class Avatar:
             extra,
             gather=gather,
         )
-        rgb = pixel_maps[:, :3]
         if layout.shading:
-            first = 3 + layout.shading_maps.start - extra.start
+            first = layout.shading_maps.start - extra.start
             world = torch.einsum("ji,pjk->pik", view, rotation)  # Vᵀ·(V·R)
             rgb = _shading_gain(rgb, pixel_maps[:, first : first + SHADING_FEATURES], world)
         # The covered pixels (alpha 1) over the background (alpha 0).
@@ -365,7 +364,7 @@ class Avatar:
         shaded = antialias(image, raster, displaced, t.faces, camera, t.topology)
         normals = None
         if want_normals:
-            normals = rotate_normalize(pixel_rot, pixel_maps[:, 3:6])
+            normals = rotate_normalize(pixel_rot, pixel_maps[:, :3])
         return MeshRender(
             shaded[..., :3],
             shaded[..., 3],

@@ -11,7 +11,7 @@ from urhead.ops.lift import LiftOutput, lift_gaussians_geometry
 from urhead.ops.pixels import covered_pixels, scatter_pixels
 from urhead.ops.rasterize import RasterOutput, UvRasterOutput, rasterize, rasterize_uv
 from urhead.ops.rotate import rotate_normalize
-from urhead.ops.sh_texture import half_maps, sh_texture
+from urhead.ops.sh_texture import ShadedTexels, half_maps, sh_texture
 from urhead.ops.shading import sh_shade
 from urhead.ops.splat import SplatOutput, normal_to_quat, rasterize_gaussians
 from urhead.ops.ssim import masked_l1, masked_pixel_l1, masked_ssim, masked_ssim_l1
@@ -22,6 +22,7 @@ __all__ = [
     "LbsOutput",
     "LiftOutput",
     "RasterOutput",
+    "ShadedTexels",
     "SplatOutput",
     "TextureGather",
     "UvRasterOutput",

@@ -660,12 +660,10 @@ def sh_shade(coeffs, dirs, degree):
 
 def sh_texture(tex, uv, dirs, degree, extra=None):
     """Reference of :func:`urhead.ops.sh_texture`: the lookup, then SH colour and the
-    ``extra`` slice of the rows."""
+    ``extra`` slice of the rows, as ``(rgb, extra)``."""
     rows = texture(tex, uv)
-    parts = [sh_shade(rows, dirs.detach(), degree)]
-    if extra is not None:
-        parts.append(rows[:, extra])
-    return torch.cat(parts, 1)
+    extra = slice(0, 0) if extra is None else extra
+    return sh_shade(rows, dirs.detach(), degree), rows[:, extra]
 
 
 def composite(front, transmittance, back):

@@ -296,6 +296,10 @@ fn bench_raster(c: &mut Criterion) {
         .chunks_exact(6)
         .flat_map(|v| [v[0], v[1], v[2]])
         .collect();
+    let v_normal: Vec<f32> = v_pixel_maps
+        .chunks_exact(6)
+        .flat_map(|v| [v[3], v[4], v[5]])
+        .collect();
     let pixel_maps = ShTextureInputs {
         tex: &s.tex,
         height: TEX,
@@ -331,7 +335,7 @@ fn bench_raster(c: &mut Criterion) {
     let fused = |backward: bool| {
         let out = sh_texture_forward(&pixel_maps, backward, backward).unwrap();
         if !backward {
-            return out.values.len();
+            return out.rgb.len() + out.extra.len();
         }
         let g = sh_texture_backward(
             &ShTextureGradInputs {
@@ -342,7 +346,8 @@ fn bench_raster(c: &mut Criterion) {
                 extra: 48..51,
                 raw_rgb: out.raw_rgb.as_deref().unwrap(),
                 slopes: out.slopes.as_deref(),
-                v_values: &v_pixel_maps,
+                v_rgb: Some(&v_rgb),
+                v_extra: Some(&v_normal),
             },
             true,
         )

@@ -45,11 +45,12 @@ fn forward<'py, T: Element + Real, S: Element + Texel<T>>(
             })
         })
         .map_err(py_err)?;
-    let width = 3 + inputs.extra.len();
+    let (e, width) = (inputs.extra.len(), 3 + inputs.extra.len());
     PyTuple::new(
         py,
         [
-            array(py, out.values, &[n, width])?.into_any().unbind(),
+            array(py, out.rgb, &[n, 3])?.into_any().unbind(),
+            array(py, out.extra, &[n, e])?.into_any().unbind(),
             optional(py, out.raw_rgb, &[n, 3])?,
             optional(py, out.slopes, &[n, 2, width])?,
         ],
@@ -66,14 +67,28 @@ fn backward<'py, T: Element + Real>(
     extra: (usize, usize),
     raw_rgb: Arr<'py, T>,
     slopes: Option<Arr<'py, T>>,
-    v_values: Arr<'py, T>,
+    v_rgb: Option<Arr<'py, T>>,
+    v_extra: Option<Arr<'py, T>>,
     need_rows: bool,
     num_threads: usize,
 ) -> PyResult<Bound<'py, PyTuple>> {
     let n = shape(&uv, "uv", 2, "(N, 2)")?[0];
     shape(&dirs, "dirs", 2, "(N, 3)")?;
     shape(&raw_rgb, "raw_rgb", 2, "(N, 3)")?;
-    shape(&v_values, "v_values", 2, "(N, 3 + E)")?;
+    let v_rgb = match &v_rgb {
+        Some(v) => {
+            shape(v, "v_rgb", 2, "(N, 3)")?;
+            Some(data(v, "v_rgb")?)
+        }
+        None => None,
+    };
+    let v_extra = match &v_extra {
+        Some(v) => {
+            shape(v, "v_extra", 2, "(N, E)")?;
+            Some(data(v, "v_extra")?)
+        }
+        None => None,
+    };
     let slopes = match &slopes {
         Some(s) => {
             shape(s, "slopes", 3, "(N, 2, 3 + E)")?;
@@ -89,7 +104,8 @@ fn backward<'py, T: Element + Real>(
         extra: extra.0..extra.1,
         raw_rgb: data(&raw_rgb, "raw_rgb")?,
         slopes,
-        v_values: data(&v_values, "v_values")?,
+        v_rgb,
+        v_extra,
     };
     let g = py
         .allow_threads(|| with_threads(num_threads, || kernel::sh_texture_backward(&inputs, need_rows)))
@@ -103,8 +119,8 @@ fn backward<'py, T: Element + Real>(
     )
 }
 
-/// `(values (N, 3 + E), raw_rgb (N, 3) or None, slopes (N, 2, 3 + E) or None)`: the SH
-/// colour of `tex (Ht, Wt, C)` at `uv (N, 2)` along `dirs (N, 3)`, then the channels
+/// `(rgb (N, 3), extra (N, E), raw_rgb (N, 3) or None, slopes (N, 2, 3 + E) or None)`: the
+/// SH colour of `tex (Ht, Wt, C)` at `uv (N, 2)` along `dirs (N, 3)`, and the channels
 /// `extra = (start, end)`; `wants = (raw_rgb, slopes)`. A float16 `tex` is read in
 /// float32 (`uv` and `dirs` float32).
 #[pyfunction]
@@ -142,11 +158,11 @@ pub fn sh_texture_forward<'py>(
     ))
 }
 
-/// `(v_rows (N, C) or None, v_uv (N, 2) or None)` from the values' gradient `v_values
-/// (N, 3 + E)` and the forward's saved `raw_rgb` and `slopes` (the UV gradient only with
-/// slopes; the rows only with `need_rows`).
+/// `(v_rows (N, C) or None, v_uv (N, 2) or None)` from the outputs' gradients `v_rgb (N, 3)`
+/// and `v_extra (N, E)` (None for zero) and the forward's saved `raw_rgb` and `slopes` (the
+/// UV gradient only with slopes; the rows only with `need_rows`).
 #[pyfunction]
-#[pyo3(signature = (uv, dirs, degree, channels, extra, raw_rgb, slopes, v_values, need_rows, num_threads))]
+#[pyo3(signature = (uv, dirs, degree, channels, extra, raw_rgb, slopes, v_rgb, v_extra, need_rows, num_threads))]
 pub fn sh_texture_backward<'py>(
     py: Python<'py>,
     uv: &Bound<'py, PyAny>,
@@ -156,7 +172,8 @@ pub fn sh_texture_backward<'py>(
     extra: (usize, usize),
     raw_rgb: &Bound<'py, PyAny>,
     slopes: Option<&Bound<'py, PyAny>>,
-    v_values: &Bound<'py, PyAny>,
+    v_rgb: Option<&Bound<'py, PyAny>>,
+    v_extra: Option<&Bound<'py, PyAny>>,
     need_rows: bool,
     num_threads: usize,
 ) -> PyResult<Bound<'py, PyTuple>> {
@@ -169,7 +186,8 @@ pub fn sh_texture_backward<'py>(
         extra,
         raw_rgb.extract()?,
         optional_array(slopes)?,
-        v_values.extract()?,
+        optional_array(v_rgb)?,
+        optional_array(v_extra)?,
         need_rows,
         num_threads,
     ))

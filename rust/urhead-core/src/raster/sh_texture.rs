@@ -61,8 +61,12 @@ pub struct ShTextureInputs<'a, T, S = T> {
 /// What the forward returns; the optional parts exactly when asked for.
 #[derive(Debug, Clone)]
 pub struct ShTextureOutput<T> {
-    /// `(N, 3 + E)`: the colour, then the extra channels.
-    pub values: Vec<T>,
+    /// `(N, 3)` the colour.
+    pub rgb: Vec<T>,
+    /// `(N, E)` the extra channels. Apart from the colour, so that neither is a strided
+    /// slice of one array: their gradients then arrive apart too, with no zero-filled
+    /// `(N, 3 + E)` array per part and no sum of the two (autograd's slice backward).
+    pub extra: Vec<T>,
     /// `(N, 3)` the colour before its clamp at 0 (which channels pass gradient).
     pub raw_rgb: Option<Vec<T>>,
     /// `(N, 2, 3 + E)` ∂values/∂u then ∂values/∂v (the colour's before the clamp).
@@ -84,8 +88,10 @@ pub struct ShTextureGradInputs<'a, T> {
     pub raw_rgb: &'a [T],
     /// `(N, 2, 3 + E)` [`ShTextureOutput::slopes`]; without them no UV gradient.
     pub slopes: Option<&'a [T]>,
-    /// `(N, 3 + E)` ∂L/∂values.
-    pub v_values: &'a [T],
+    /// `(N, 3)` ∂L/∂rgb; `None` for zero.
+    pub v_rgb: Option<&'a [T]>,
+    /// `(N, E)` ∂L/∂extra; `None` for zero.
+    pub v_extra: Option<&'a [T]>,
 }
 
 /// The backward's gradients, `None` where not asked for.
@@ -158,8 +164,9 @@ pub fn sh_texture_forward<T: Real, S: Texel<T>>(
     check_len("dirs", inputs.dirs, 3 * n, &format!("(N, 3) = ({n}, 3)"))?;
     check_finite("dirs", inputs.dirs)?;
     let (c, extra) = (inputs.channels, inputs.extra.clone());
-    let width = 3 + extra.len();
-    let mut values = zeroed("sh_texture values (N, 3 + E)", n * width)?;
+    let (e, width) = (extra.len(), 3 + extra.len());
+    let mut rgb = zeroed("sh_texture colour (N, 3)", n * 3)?;
+    let mut extra_out = zeroed("sh_texture extra channels (N, E)", n * e)?;
     let mut raw = for_backward
         .then(|| zeroed("sh_texture colour (N, 3)", n * 3))
         .transpose()?;
@@ -167,18 +174,20 @@ pub fn sh_texture_forward<T: Real, S: Texel<T>>(
         .then(|| zeroed("sh_texture slopes (N, 2, 3 + E)", n * 2 * width))
         .transpose()?;
     let tasks = n.div_ceil(SAMPLE_CHUNK);
+    let extra_chunks = optional_chunks((e > 0).then_some(&mut extra_out[..]), SAMPLE_CHUNK * e, tasks);
     let raw_chunks = optional_chunks(raw.as_deref_mut(), SAMPLE_CHUNK * 3, tasks);
     let slope_chunks = optional_chunks(slope_out.as_deref_mut(), SAMPLE_CHUNK * 2 * width, tasks);
     // dx/du = Wt, dy/dv = −Ht (texel row 0 is the top).
     let (du, dv) = (T::c(inputs.width as f64), -T::c(inputs.height as f64));
-    let non_finite = values
-        .par_chunks_mut(SAMPLE_CHUNK * width)
+    let non_finite = rgb
+        .par_chunks_mut(SAMPLE_CHUNK * 3)
+        .zip(extra_chunks)
         .zip(raw_chunks)
         .zip(slope_chunks)
         .enumerate()
-        .map(|(chunk, ((values, mut raw), mut slope_out))| {
+        .map(|(chunk, (((rgb_out, mut extra_out), mut raw), mut slope_out))| {
             let first = chunk * SAMPLE_CHUNK;
-            let count = values.len() / width;
+            let count = rgb_out.len() / 3;
             let uv = &inputs.uv[2 * first..2 * (first + count)];
             let taps: Vec<Option<Taps<T>>> = uv
                 .chunks_exact(2)
@@ -189,7 +198,7 @@ pub fn sh_texture_forward<T: Real, S: Texel<T>>(
             let mut widened = vec![T::zero(); 4 * c]; // float16 rows as T
             let used = [&(0..colour), &extra];
             let (mut d_fx, mut d_fy) = (vec![T::zero(); c], vec![T::zero(); c]);
-            for (i, out) in values.chunks_exact_mut(width).enumerate() {
+            for (i, out) in rgb_out.chunks_exact_mut(3).enumerate() {
                 if let Some(Some(ahead)) = taps.get(i + PREFETCH_DISTANCE) {
                     prefetch_taps(ahead, inputs.tex, c);
                 }
@@ -217,7 +226,9 @@ pub fn sh_texture_forward<T: Real, S: Texel<T>>(
                     // NaN-safe clamp, as the shading op: a NaN coefficient gives NaN.
                     out[ch] = if rgb[ch] < T::zero() { T::zero() } else { rgb[ch] };
                 }
-                copy_short(&mut out[3..], &row[extra.start..], extra.len());
+                if let Some(extra_out) = extra_out.as_deref_mut() {
+                    copy_short(&mut extra_out[e * i..], &row[extra.start..], e);
+                }
                 if let Some(raw) = raw.as_deref_mut() {
                     raw[3 * i..3 * i + 3].copy_from_slice(&rgb);
                 }
@@ -239,16 +250,16 @@ pub fn sh_texture_forward<T: Real, S: Texel<T>>(
                 }
             }
             // x·0 ≠ 0 exactly for NaN and ±inf (an OR-reduction vectorises).
-            values
-                .iter()
-                .fold(false, |bad, &x| bad | (x * T::zero() != T::zero()))
+            let extra_out = extra_out.as_deref().unwrap_or(&[]);
+            (rgb_out.iter().chain(extra_out)).fold(false, |bad, &x| bad | (x * T::zero() != T::zero()))
         })
         .reduce(|| false, |a, b| a | b);
     if non_finite {
         S::check_finite("tex", inputs.tex)?;
     }
     Ok(ShTextureOutput {
-        values,
+        rgb,
+        extra: extra_out,
         raw_rgb: raw,
         slopes: slope_out,
     })
@@ -263,17 +274,17 @@ pub fn sh_texture_backward<T: Real>(
 ) -> Result<ShTextureGrads<T>> {
     let colour = check_channels(g.degree, g.channels, &g.extra)?;
     let (c, extra) = (g.channels, g.extra.clone());
-    let width = 3 + extra.len();
+    let (e, width) = (extra.len(), 3 + extra.len());
     let n = g.uv.len() / 2;
     check_len("uv", g.uv, 2 * n, "(N, 2)")?;
     check_len("dirs", g.dirs, 3 * n, &format!("(N, 3) = ({n}, 3)"))?;
     check_len("raw_rgb", g.raw_rgb, 3 * n, &format!("(N, 3) = ({n}, 3)"))?;
-    check_len(
-        "v_values",
-        g.v_values,
-        width * n,
-        &format!("(N, 3 + E) = ({n}, {width})"),
-    )?;
+    if let Some(v) = g.v_rgb {
+        check_len("v_rgb", v, 3 * n, &format!("(N, 3) = ({n}, 3)"))?;
+    }
+    if let Some(v) = g.v_extra {
+        check_len("v_extra", v, e * n, &format!("(N, E) = ({n}, {e})"))?;
+    }
     if let Some(s) = g.slopes {
         check_len(
             "slopes",
@@ -301,14 +312,20 @@ pub fn sh_texture_backward<T: Real>(
             let count = SAMPLE_CHUNK.min(n - first);
             for i in 0..count {
                 let s = first + i;
-                let v = &g.v_values[width * s..width * (s + 1)];
+                // A part without a gradient is zeros, as autograd would have filled them.
+                let given = g
+                    .v_rgb
+                    .map_or([T::zero(); 3], |v| [v[3 * s], v[3 * s + 1], v[3 * s + 2]]);
+                let v_extra = g.v_extra.map(|v| &v[e * s..e * (s + 1)]);
                 let raw = &g.raw_rgb[3 * s..3 * s + 3];
-                let v_rgb = unclamped([raw[0], raw[1], raw[2]], [v[0], v[1], v[2]]);
+                let v_rgb = unclamped([raw[0], raw[1], raw[2]], given);
                 if let Some(rows) = rows.as_deref_mut() {
                     let row = &mut rows[c * i..c * (i + 1)];
                     let (b, _) = sh_basis(g.degree, direction(g.dirs, s), false);
                     sh_sum_adjoint(&b, v_rgb, &mut row[..colour]);
-                    copy_short(&mut row[extra.start..], &v[3..], extra.len());
+                    if let Some(v_extra) = v_extra {
+                        copy_short(&mut row[extra.start..], v_extra, e);
+                    }
                 }
                 if let (Some(v_uv), Some(slopes)) = (v_uv.as_deref_mut(), g.slopes) {
                     if !(g.uv[2 * s].is_finite() && g.uv[2 * s + 1].is_finite()) {
@@ -317,7 +334,11 @@ pub fn sh_texture_backward<T: Real>(
                     let (along_u, along_v) = slopes[2 * width * s..2 * width * (s + 1)].split_at(width);
                     let (mut du, mut dv) = (T::zero(), T::zero());
                     for j in 0..width {
-                        let x = if j < 3 { v_rgb[j] } else { v[j] };
+                        let x = match (j < 3, v_extra) {
+                            (true, _) => v_rgb[j],
+                            (false, Some(v)) => v[j - 3],
+                            (false, None) => T::zero(),
+                        };
                         du += x * along_u[j];
                         dv += x * along_v[j];
                     }
@@ -369,12 +390,16 @@ mod tests {
         }
     }
 
-    /// Both gradients of `v_values` after the forward `out` of `inputs`.
+    /// Both gradients of `v_values (N, 3 + E)`, the colour's then the extra channels', after
+    /// the forward `out` of `inputs`.
     fn backward<T: Real>(
         inputs: &ShTextureInputs<'_, T>,
         out: &ShTextureOutput<T>,
         v_values: &[T],
     ) -> ShTextureGrads<T> {
+        let e = inputs.extra.len();
+        let v_rgb: Vec<T> = v_values.chunks(3 + e).flat_map(|v| v[..3].to_vec()).collect();
+        let v_extra: Vec<T> = v_values.chunks(3 + e).flat_map(|v| v[3..].to_vec()).collect();
         let grad_inputs = ShTextureGradInputs {
             uv: inputs.uv,
             dirs: inputs.dirs,
@@ -383,7 +408,8 @@ mod tests {
             extra: inputs.extra.clone(),
             raw_rgb: out.raw_rgb.as_deref().unwrap(),
             slopes: out.slopes.as_deref(),
-            v_values,
+            v_rgb: Some(&v_rgb),
+            v_extra: Some(&v_extra),
         };
         sh_texture_backward(&grad_inputs, true).unwrap()
     }
@@ -409,11 +435,11 @@ mod tests {
             for s in 0..n {
                 expected_rows[s * C + 48..s * C + 51].copy_from_slice(&v_values[6 * s + 3..6 * s + 6]);
                 assert_eq!(
-                    out.values[6 * s..6 * s + 3],
+                    out.rgb[3 * s..3 * s + 3],
                     rgb[3 * s..3 * s + 3],
                     "degree {degree}"
                 );
-                assert_eq!(out.values[6 * s + 3..6 * s + 6], rows[s * C + 48..s * C + 51]);
+                assert_eq!(out.extra[3 * s..3 * s + 3], rows[s * C + 48..s * C + 51]);
             }
             assert_eq!(grads.v_rows.as_deref().unwrap(), &expected_rows[..]);
             // The UV gradient, through the slopes, against the lookup's own.
@@ -447,12 +473,57 @@ mod tests {
             };
             let out = sh_texture_forward(&inputs, true, true).unwrap();
             let grads = backward(&inputs, &out, &v_values);
-            (out.values, out.slopes, grads.v_rows, grads.v_uv)
+            (out.rgb, out.extra, out.slopes, grads.v_rows, grads.v_uv)
         };
         let one = on_threads(1, run);
         for threads in [2, 3] {
             assert!(on_threads(threads, run) == one, "{threads} threads");
         }
+    }
+
+    /// A part whose gradient is not given (autograd's `None` when the loss does not use
+    /// it) gives the gradients of zeros for it, bit for bit.
+    #[test]
+    fn a_part_without_gradient_is_zeros() {
+        let n = 300;
+        let (tex, uv, dirs) = scene(n, 7);
+        let inputs = inputs(&tex, &uv, &dirs, 3);
+        let out = sh_texture_forward(&inputs, true, true).unwrap();
+        let v = Rng::new(8).vec::<f64>(3 * n, -1.0, 1.0);
+        let zeros = vec![0.0; 3 * n];
+        let run = |v_rgb: Option<&[f64]>, v_extra: Option<&[f64]>| {
+            let g = ShTextureGradInputs {
+                uv: &uv,
+                dirs: &dirs,
+                degree: 3,
+                channels: C,
+                extra: 48..51,
+                raw_rgb: out.raw_rgb.as_deref().unwrap(),
+                slopes: out.slopes.as_deref(),
+                v_rgb,
+                v_extra,
+            };
+            let grads = sh_texture_backward(&g, true).unwrap();
+            (grads.v_rows.unwrap(), grads.v_uv.unwrap())
+        };
+        assert_eq!(run(Some(&v), None), run(Some(&v), Some(&zeros)));
+        assert_eq!(run(None, Some(&v)), run(Some(&zeros), Some(&v)));
+        let short = &v[..3 * n - 1];
+        let g = ShTextureGradInputs {
+            uv: &uv,
+            dirs: &dirs,
+            degree: 3,
+            channels: C,
+            extra: 48..51,
+            raw_rgb: out.raw_rgb.as_deref().unwrap(),
+            slopes: None,
+            v_rgb: None,
+            v_extra: Some(short),
+        };
+        assert!(sh_texture_backward(&g, true)
+            .unwrap_err()
+            .to_string()
+            .contains("v_extra"));
     }
 
     #[test]
@@ -461,12 +532,9 @@ mod tests {
         let out = sh_texture_forward(&inputs(&tex, &uv, &dirs, 3), false, false).unwrap();
         assert!(out.raw_rgb.is_none() && out.slopes.is_none());
         let full = sh_texture_forward(&inputs(&tex, &uv, &dirs, 3), true, true).unwrap();
-        assert_eq!(out.values, full.values);
-        assert_eq!(
-            &out.values[18..21],
-            &[0.5, 0.5, 0.5],
-            "a NaN coordinate reads zeros"
-        );
+        assert_eq!((&out.rgb, &out.extra), (&full.rgb, &full.extra));
+        assert_eq!(&out.rgb[9..12], &[0.5, 0.5, 0.5], "a NaN coordinate reads zeros");
+        assert_eq!(&out.extra[9..12], &[0.0, 0.0, 0.0]);
     }
 
     #[test]
