@@ -300,6 +300,8 @@ pub fn sh_texture_backward<T: Real>(
         .slopes
         .map(|_| zeroed("sh_texture uv gradient (N, 2)", 2 * n))
         .transpose()?;
+    // A part without a gradient reads as zeros, as autograd would have filled them.
+    let no_extra = vec![T::zero(); e];
     let tasks = n.div_ceil(SAMPLE_CHUNK);
     let row_chunks = optional_chunks(v_rows.as_deref_mut(), SAMPLE_CHUNK * c, tasks);
     let uv_chunks = optional_chunks(v_uv.as_deref_mut(), SAMPLE_CHUNK * 2, tasks);
@@ -312,20 +314,17 @@ pub fn sh_texture_backward<T: Real>(
             let count = SAMPLE_CHUNK.min(n - first);
             for i in 0..count {
                 let s = first + i;
-                // A part without a gradient is zeros, as autograd would have filled them.
                 let given = g
                     .v_rgb
                     .map_or([T::zero(); 3], |v| [v[3 * s], v[3 * s + 1], v[3 * s + 2]]);
-                let v_extra = g.v_extra.map(|v| &v[e * s..e * (s + 1)]);
+                let v_extra = g.v_extra.map_or(&no_extra[..], |v| &v[e * s..e * (s + 1)]);
                 let raw = &g.raw_rgb[3 * s..3 * s + 3];
                 let v_rgb = unclamped([raw[0], raw[1], raw[2]], given);
                 if let Some(rows) = rows.as_deref_mut() {
                     let row = &mut rows[c * i..c * (i + 1)];
                     let (b, _) = sh_basis(g.degree, direction(g.dirs, s), false);
                     sh_sum_adjoint(&b, v_rgb, &mut row[..colour]);
-                    if let Some(v_extra) = v_extra {
-                        copy_short(&mut row[extra.start..], v_extra, e);
-                    }
+                    copy_short(&mut row[extra.start..], v_extra, e);
                 }
                 if let (Some(v_uv), Some(slopes)) = (v_uv.as_deref_mut(), g.slopes) {
                     if !(g.uv[2 * s].is_finite() && g.uv[2 * s + 1].is_finite()) {
@@ -334,11 +333,7 @@ pub fn sh_texture_backward<T: Real>(
                     let (along_u, along_v) = slopes[2 * width * s..2 * width * (s + 1)].split_at(width);
                     let (mut du, mut dv) = (T::zero(), T::zero());
                     for j in 0..width {
-                        let x = match (j < 3, v_extra) {
-                            (true, _) => v_rgb[j],
-                            (false, Some(v)) => v[j - 3],
-                            (false, None) => T::zero(),
-                        };
+                        let x = if j < 3 { v_rgb[j] } else { v_extra[j - 3] };
                         du += x * along_u[j];
                         dv += x * along_v[j];
                     }
