@@ -176,6 +176,66 @@ fn gradient_elements_match_central_differences_near_borders() {
     assert!(worst < 1e-9, "worst element error {worst}");
 }
 
+/// A mask of a few soft patches on a zero background, as a head's on its frame, one patch
+/// across the kernel's band boundary (row 128) and one band nearly empty: the kernel
+/// computes only on the columns the patches reach, and must agree with the definition
+/// everywhere, the gradient exactly zero beyond the window's reach of any patch.
+#[test]
+fn a_mask_of_patches_matches_the_definition_everywhere() {
+    let mut case = Case::new(140, 16, 1, 51);
+    let mut rng = Rng::new(52);
+    let patches = [(30..40, 3..6), (124..131, 10..12)];
+    let weight = |i: usize, j: usize| patches.iter().any(|(r, c)| r.contains(&i) && c.contains(&j));
+    case.mask = Some(
+        (0..case.h * case.w)
+            .map(|p| {
+                let v = rng.uniform(0.2, 1.0);
+                if weight(p / case.w, p % case.w) {
+                    v
+                } else {
+                    0.0
+                }
+            })
+            .collect(),
+    );
+    let (value, grad) = masked_ssim_with_grad(&case.inputs(&case.x), 1.0).unwrap();
+    let direct = case.direct(&case.x);
+    assert!((value - direct).abs() < 1e-14, "{value} vs {direct}");
+    assert_eq!(
+        value.to_bits(),
+        masked_ssim(&case.inputs(&case.x)).unwrap().to_bits()
+    );
+    let reach = (WINDOW - 1) as isize; // two blurs of half width 5
+    let near_patch = |i: usize, j: usize| {
+        patches.iter().any(|(r, c)| {
+            let (di, dj) = (i as isize, j as isize);
+            di >= r.start as isize - reach
+                && di < r.end as isize + reach
+                && dj >= c.start as isize - reach
+                && dj < c.end as isize + reach
+        })
+    };
+    let eps = 1e-6;
+    let mut worst: f64 = 0.0;
+    for k in 0..case.x.len() {
+        let (i, j) = (k / case.c / case.w, k / case.c % case.w);
+        if !near_patch(i, j) {
+            assert_eq!(grad[k], 0.0, "element {k} (row {i}, column {j}) is out of reach");
+            continue;
+        }
+        if k % 2 == 1 && (i + j) % 7 != 0 {
+            continue; // about half the elements by differences, to keep the test short
+        }
+        let mut x = case.x.clone();
+        x[k] += eps;
+        let plus = masked_ssim(&case.inputs(&x)).unwrap();
+        x[k] -= 2.0 * eps;
+        let minus = masked_ssim(&case.inputs(&x)).unwrap();
+        worst = worst.max(((plus - minus) / (2.0 * eps) - grad[k]).abs());
+    }
+    assert!(worst < 1e-9, "worst element error {worst}");
+}
+
 #[test]
 fn identical_images_score_one_with_zero_gradient() {
     let case = Case::new(20, 9, 3, 31);

@@ -15,7 +15,9 @@ use rayon::prelude::*;
 use super::blur::{PaddedRows, RowRing};
 use super::forward::{expand_mask_row, MomentStream, MOMENTS};
 use super::l1::{add_slope_row, row_sum};
-use super::{bands, check_weight, gaussian_window, PixelTerms, SsimInputs, BAND_ROWS, WINDOW};
+use super::{
+    bands, check_weight, elements, gaussian_window, widened, PixelTerms, SsimInputs, BAND_ROWS, WINDOW,
+};
 use crate::error::Result;
 use crate::memory::zeroed;
 use crate::parallel::dot;
@@ -103,9 +105,17 @@ fn band_with_grad<T: Real>(
     let weights_1d: [T; WINDOW] = gaussian_window();
     // Coefficient rows reach `half` rows beyond the band; their moments `half` more.
     let (first, last) = (start.saturating_sub(half), (end + half).min(h));
-    let mut moments = MomentStream::new(inputs, first);
+    // The coefficients are zero but where the mask is positive (on `columns` of these
+    // rows), so their blur, the gradient, is zero but on those widened by the window.
+    let columns = inputs.weighted_columns(first..last);
+    let (weighted, reached) = (
+        elements(&columns, inputs.channels),
+        elements(&widened(&columns, inputs.width), inputs.channels),
+    );
+    let mut moments = MomentStream::new(inputs, first, &columns);
+    // Zero outside `columns`, which the coefficients' horizontal pass reads as such.
     let mut coefficients = PaddedRows::<T, COEFFICIENTS>::new(inputs.width, inputs.channels);
-    let mut ring = RowRing::new(h, COEFFICIENTS * len);
+    let mut ring = RowRing::new(h, COEFFICIENTS, len);
     let mut blurred = vec![T::zero(); COEFFICIENTS * len];
     let (mut mask, mut ssim) = (vec![T::zero(); len], vec![T::zero(); len]);
     let mut output_mask = vec![T::zero(); if l1_scale.is_some() { len } else { 0 }];
@@ -117,7 +127,7 @@ fn band_with_grad<T: Real>(
         let [mu_x, mu_y, e_xx, e_yy, e_xy]: [&[T]; MOMENTS] =
             std::array::from_fn(|k| &m[k * len..(k + 1) * len]);
         let [ca, cb, cc] = coefficients.interiors_mut();
-        for t in 0..len {
+        for t in weighted.clone() {
             let terms = PixelTerms::new(mu_x[t], mu_y[t], e_xx[t], e_yy[t], e_xy[t]);
             let (a, b, c, s) = pixel_adjoint(&terms, mask[t] * scale);
             (ca[t], cb[t], cc[t], ssim[t]) = (a, b, c, s);
@@ -125,17 +135,17 @@ fn band_with_grad<T: Real>(
         if (start..end).contains(&row) {
             total += dot(&ssim, &mask).to_f64().unwrap_or(f64::NAN);
         }
-        coefficients.blur_into(&weights_1d, ring.slot_mut(row));
+        coefficients.blur_into(&weights_1d, &reached, ring.slot_mut(row));
         // Gradient rows whose whole window of coefficient rows is now stored.
         while next_output < end && (next_output + half).min(h - 1) <= row {
             let r = next_output;
-            ring.blur_column(r, &weights_1d, &mut blurred);
+            ring.blur_column(r, &weights_1d, &reached, &mut blurred);
             let [ga, gb, gc]: [&[T]; COEFFICIENTS] =
                 std::array::from_fn(|k| &blurred[k * len..(k + 1) * len]);
             let x = &inputs.image[r * len..(r + 1) * len];
             let y = &inputs.target[r * len..(r + 1) * len];
             let out = &mut grad[(r - start) * len..(r - start + 1) * len];
-            for t in 0..len {
+            for t in reached.clone() {
                 out[t] = x[t].mul_add(gb[t], y[t].mul_add(gc[t], ga[t]));
             }
             if let Some(l1_scale) = l1_scale {

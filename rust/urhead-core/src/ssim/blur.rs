@@ -4,6 +4,8 @@
 //! pass sums the 11 horizontally blurred rows around the output row, kept in a ring. Rows
 //! outside the image read as zeros, which is conv2d's zero padding.
 
+use std::ops::Range;
+
 use super::WINDOW;
 use crate::Real;
 
@@ -75,33 +77,40 @@ impl<T: Real, const N: usize> PaddedRows<T, N> {
         std::array::from_fn(|_| &mut rows.next().expect("N padded rows")[margin..margin + len])
     }
 
-    /// Horizontal blur of the `N` rows into `out`, `N` consecutive rows of `W·C`.
-    pub(super) fn blur_into(&self, weights: &[T; WINDOW], out: &mut [T]) {
+    /// Horizontal blur of the `N` rows into `out`, `N` consecutive rows of `W·C`, at the
+    /// elements `range` of each row only (the rest of `out` is left as it was). Reads the
+    /// interiors `HALF·C` elements either side of `range`.
+    pub(super) fn blur_into(&self, weights: &[T; WINDOW], range: &Range<usize>, out: &mut [T]) {
         let (c, len) = (self.channels, self.row_len);
         for (padded, dst) in self
             .data
             .chunks_exact(len + 2 * HALF * c)
             .zip(out.chunks_exact_mut(len))
         {
-            let taps: [&[T]; WINDOW] = std::array::from_fn(|k| &padded[k * c..k * c + len]);
-            symmetric_weighted_sum(dst, &taps, weights);
+            let taps: [&[T]; WINDOW] =
+                std::array::from_fn(|k| &padded[k * c + range.start..k * c + range.end]);
+            symmetric_weighted_sum(&mut dst[range.clone()], &taps, weights);
         }
     }
 }
 
-/// The last `WINDOW` horizontally blurred image rows (each `N·W·C`, the maps of one image
-/// row side by side), addressed by image row.
+/// The last `WINDOW` horizontally blurred image rows (each `N·W·C`, the `N` maps of one
+/// image row side by side), addressed by image row.
 pub(super) struct RowRing<T> {
     height: usize,
+    row_len: usize,
     slot_len: usize,
     slots: Vec<T>,
     zeros: Vec<T>,
 }
 
 impl<T: Real> RowRing<T> {
-    pub(super) fn new(height: usize, slot_len: usize) -> Self {
+    /// A ring of `maps` maps of rows of `row_len` elements.
+    pub(super) fn new(height: usize, maps: usize, row_len: usize) -> Self {
+        let slot_len = maps * row_len;
         Self {
             height,
+            row_len,
             slot_len,
             slots: vec![T::zero(); WINDOW * slot_len],
             zeros: vec![T::zero(); slot_len],
@@ -114,9 +123,10 @@ impl<T: Real> RowRing<T> {
         &mut self.slots[start..start + self.slot_len]
     }
 
-    /// Vertical blur centred on image row `row` into `out` (`slot_len`). The in-image rows
-    /// `row − 5 ..= row + 5` must be the last ones stored.
-    pub(super) fn blur_column(&self, row: usize, weights: &[T; WINDOW], out: &mut [T]) {
+    /// Vertical blur centred on image row `row` into `out` (`slot_len`), at the elements
+    /// `range` of each map's row only (the rest of `out` is left as it was). The in-image
+    /// rows `row − 5 ..= row + 5` must be the last ones stored, valid on `range`.
+    pub(super) fn blur_column(&self, row: usize, weights: &[T; WINDOW], range: &Range<usize>, out: &mut [T]) {
         let sources: [&[T]; WINDOW] = std::array::from_fn(|k| match (row + k).checked_sub(HALF) {
             Some(r) if r < self.height => {
                 let start = (r % WINDOW) * self.slot_len;
@@ -124,6 +134,10 @@ impl<T: Real> RowRing<T> {
             }
             _ => &self.zeros[..],
         });
-        symmetric_weighted_sum(out, &sources, weights);
+        for (map, dst) in out.chunks_exact_mut(self.row_len).enumerate() {
+            let (start, end) = (map * self.row_len + range.start, map * self.row_len + range.end);
+            let taps: [&[T]; WINDOW] = std::array::from_fn(|k| &sources[k][start..end]);
+            symmetric_weighted_sum(&mut dst[range.clone()], &taps, weights);
+        }
     }
 }

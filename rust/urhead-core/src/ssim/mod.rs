@@ -14,7 +14,8 @@
 //! of 11 horizontally blurred rows (L2-resident), recomputing the few halo rows it shares
 //! with its neighbours instead of materialising full-image intermediates. Pixels do not
 //! depend on the banding; per-band sums are merged in band order, so results are bitwise
-//! identical for any thread count.
+//! identical for any thread count. A band computes only on the columns its rows' mask
+//! reaches (a head fills about a third of its frame; pixels outside add exact zeros).
 
 mod backward;
 mod blur;
@@ -24,6 +25,8 @@ mod l1;
 pub use backward::{masked_ssim_l1_with_grad, masked_ssim_with_grad};
 pub use forward::masked_ssim;
 pub use l1::{masked_l1, masked_l1_with_grad, pixel_l1_with_grad, PixelL1Inputs};
+
+use std::ops::Range;
 
 use rayon::prelude::*;
 
@@ -120,6 +123,31 @@ impl<T: Real> SsimInputs<'_, T> {
         self.validate()
     }
 
+    /// The pixel columns `[a, b)` that hold every pixel of `rows` with a positive mask
+    /// weight (every column without a mask; empty when there is none). SSIM is computed
+    /// only there: a pixel of weight 0 adds `0·ssim` to the mean and nothing to the
+    /// gradient, and a head fills about a third of its frame.
+    fn weighted_columns(&self, rows: Range<usize>) -> Range<usize> {
+        let w = self.width;
+        let Some(mask) = self.mask else {
+            return 0..w;
+        };
+        let (mut a, mut b) = (w, 0);
+        for row in mask[rows.start * w..rows.end * w].chunks_exact(w) {
+            if let Some(first) = row[..a].iter().position(|m| *m > T::zero()) {
+                a = first;
+            }
+            if let Some(last) = row[b..].iter().rposition(|m| *m > T::zero()) {
+                b = b + last + 1;
+            }
+        }
+        if a < b {
+            a..b
+        } else {
+            0..0
+        }
+    }
+
     /// Weight of pixel `p` in the masked mean, before normalisation.
     #[inline(always)]
     fn mask_weight(&self, pixel: usize) -> T {
@@ -192,6 +220,21 @@ impl<T: Real> PixelTerms<T> {
         let (inv_b1, inv_b2) = self.inverses();
         self.a1 * self.a2 * (inv_b1 * inv_b2)
     }
+}
+
+/// Pixel columns `columns` widened by the window's half width on either side, within
+/// `[0, width)` (still empty when empty): where a blur of values living on `columns` can
+/// be non-zero, and what a blur onto `columns` reads.
+fn widened(columns: &Range<usize>, width: usize) -> Range<usize> {
+    if columns.is_empty() {
+        return columns.clone();
+    }
+    columns.start.saturating_sub(WINDOW / 2)..(columns.end + WINDOW / 2).min(width)
+}
+
+/// The interleaved elements `(…, C)` of pixel columns `columns`.
+fn elements(columns: &Range<usize>, channels: usize) -> Range<usize> {
+    columns.start * channels..columns.end * channels
 }
 
 /// The band boundaries `[start, end)` of an image of `height` rows.
