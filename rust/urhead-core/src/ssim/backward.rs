@@ -105,9 +105,9 @@ fn band_with_grad<T: Real>(
     let weights_1d: [T; WINDOW] = gaussian_window();
     // Coefficient rows reach `half` rows beyond the band; their moments `half` more.
     let (first, last) = (start.saturating_sub(half), (end + half).min(h));
-    // The coefficients are zero but where the mask is positive (on `columns` of these
-    // rows), so their blur, the gradient, is zero but on those widened by the window.
-    let columns = inputs.weighted_columns(first..last);
+    // The coefficients are zero off `columns` of these rows (see `ssim_columns`), so their
+    // blur, the gradient, is zero off those widened by the window.
+    let columns = inputs.ssim_columns(first..last);
     let (weighted, reached) = (
         elements(&columns, inputs.channels),
         elements(&widened(&columns, inputs.width), inputs.channels),
@@ -117,7 +117,8 @@ fn band_with_grad<T: Real>(
     let mut coefficients = PaddedRows::<T, COEFFICIENTS>::new(inputs.width, inputs.channels);
     let mut ring = RowRing::new(h, COEFFICIENTS, len);
     let mut blurred = vec![T::zero(); COEFFICIENTS * len];
-    let (mut mask, mut ssim) = (vec![T::zero(); len], vec![T::zero(); len]);
+    // SSIM is exactly 1 off `columns`.
+    let (mut mask, mut ssim) = (vec![T::zero(); len], vec![T::one(); len]);
     let mut output_mask = vec![T::zero(); if l1_scale.is_some() { len } else { 0 }];
     let mut next_output = start;
     let (mut total, mut l1_total) = (0.0, 0.0);

@@ -102,10 +102,10 @@ pub fn masked_ssim<T: Real>(inputs: &SsimInputs<'_, T>) -> Result<T> {
     let len = inputs.width * inputs.channels;
     let partials: Vec<f64> = bands(inputs.height)
         .map(|(start, end)| {
-            let columns = inputs.weighted_columns(start..end);
+            let columns = inputs.ssim_columns(start..end);
             let mut stream = MomentStream::new(inputs, start, &columns);
-            // Zero outside the columns, where the weights are zero too.
-            let (mut ssim, mut weights) = (vec![T::zero(); len], vec![T::zero(); len]);
+            // SSIM is exactly 1 off `columns` (see `ssim_columns`).
+            let (mut ssim, mut weights) = (vec![T::one(); len], vec![T::zero(); len]);
             let mut total = 0.0;
             for row in start..end {
                 ssim_row(stream.row(row), &elements(&columns, inputs.channels), &mut ssim);

@@ -14,8 +14,10 @@
 //! of 11 horizontally blurred rows (L2-resident), recomputing the few halo rows it shares
 //! with its neighbours instead of materialising full-image intermediates. Pixels do not
 //! depend on the banding; per-band sums are merged in band order, so results are bitwise
-//! identical for any thread count. A band computes only on the columns its rows' mask
-//! reaches (a head fills about a third of its frame; pixels outside add exact zeros).
+//! identical for any thread count. A band computes only on the columns where its rows'
+//! mask is positive and the image differs from the target within a window
+//! ([`SsimInputs::ssim_columns`]): a head fills about a third of its frame, and a render's
+//! background equals the photo's.
 
 mod backward;
 mod blur;
@@ -123,29 +125,49 @@ impl<T: Real> SsimInputs<'_, T> {
         self.validate()
     }
 
-    /// The pixel columns `[a, b)` that hold every pixel of `rows` with a positive mask
-    /// weight (every column without a mask; empty when there is none). SSIM is computed
-    /// only there: a pixel of weight 0 adds `0·ssim` to the mean and nothing to the
-    /// gradient, and a head fills about a third of its frame.
-    fn weighted_columns(&self, rows: Range<usize>) -> Range<usize> {
-        let w = self.width;
-        let Some(mask) = self.mask else {
-            return 0..w;
-        };
-        let (mut a, mut b) = (w, 0);
-        for row in mask[rows.start * w..rows.end * w].chunks_exact(w) {
-            if let Some(first) = row[..a].iter().position(|m| *m > T::zero()) {
-                a = first;
-            }
-            if let Some(last) = row[b..].iter().rposition(|m| *m > T::zero()) {
-                b = b + last + 1;
-            }
+    /// The pixel columns `[a, b)` of rows `rows` on which SSIM is computed (empty for none):
+    /// those holding every pixel of a positive mask weight (all without a mask) whose window
+    /// reaches a pixel where the image and the target differ. Elsewhere the pixel adds
+    /// `0·ssim` to the mean, or its window shows the image equal to the target, where SSIM
+    /// is at its maximum: exactly 1, with an exactly zero gradient. A head fills about a
+    /// third of its frame, and a render's background is the target's exactly.
+    fn ssim_columns(&self, rows: Range<usize>) -> Range<usize> {
+        let weighted = self.weighted_columns(rows.clone());
+        if weighted.is_empty() {
+            return weighted;
         }
+        let half = WINDOW / 2;
+        let window_rows = rows.start.saturating_sub(half)..(rows.end + half).min(self.height);
+        let reached = widened(&self.differing_columns(window_rows), self.width);
+        let (a, b) = (weighted.start.max(reached.start), weighted.end.min(reached.end));
         if a < b {
             a..b
         } else {
             0..0
         }
+    }
+
+    /// The pixel columns `[a, b)` holding every pixel of `rows` with a positive mask weight
+    /// (every column without a mask; empty when there is none).
+    fn weighted_columns(&self, rows: Range<usize>) -> Range<usize> {
+        let w = self.width;
+        let Some(mask) = self.mask else {
+            return 0..w;
+        };
+        columns_where(&mask[rows.start * w..rows.end * w], None, w, 1)
+    }
+
+    /// The pixel columns `[a, b)` holding every pixel of `rows` where the image and the
+    /// target differ in some channel (empty when they are equal).
+    fn differing_columns(&self, rows: Range<usize>) -> Range<usize> {
+        let len = self.width * self.channels;
+        let span = rows.start * len..rows.end * len;
+        columns_where(
+            &self.image[span.clone()],
+            Some(&self.target[span]),
+            len,
+            self.channels,
+        )
     }
 
     /// Weight of pixel `p` in the masked mean, before normalisation.
@@ -219,6 +241,37 @@ impl<T: Real> PixelTerms<T> {
     fn ssim(&self) -> T {
         let (inv_b1, inv_b2) = self.inverses();
         self.a1 * self.a2 * (inv_b1 * inv_b2)
+    }
+}
+
+/// The columns `[a, b)` (of `channels` elements each) holding every element of the rows
+/// of `row_len` elements of `values` that is positive, or, given `others`, that differs
+/// from its counterpart there (empty for none). Each row is scanned from either end only
+/// up to the columns already found.
+fn columns_where<T: Real>(
+    values: &[T],
+    others: Option<&[T]>,
+    row_len: usize,
+    channels: usize,
+) -> Range<usize> {
+    let hit = |i: usize| match others {
+        None => values[i] > T::zero(),
+        Some(others) => values[i] != others[i],
+    };
+    let columns = row_len / channels;
+    let (mut a, mut b) = (columns, 0);
+    for start in (0..values.len()).step_by(row_len) {
+        if let Some(t) = (start..start + a * channels).find(|&i| hit(i)) {
+            a = (t - start) / channels;
+        }
+        if let Some(t) = (start + b * channels..start + row_len).rev().find(|&i| hit(i)) {
+            b = (t - start) / channels + 1;
+        }
+    }
+    if a < b {
+        a..b
+    } else {
+        0..0
     }
 }
 
