@@ -16,7 +16,7 @@
 //! depend on the banding; per-band sums are merged in band order, so results are bitwise
 //! identical for any thread count. A band computes only on the columns where its rows'
 //! mask is positive and the image differs from the target within a window
-//! ([`SsimInputs::ssim_columns`]): a head fills about a third of its frame, and a render's
+//! (`SsimInputs::ssim_columns`): a head fills about a third of its frame, and a render's
 //! background equals the photo's.
 
 mod backward;
