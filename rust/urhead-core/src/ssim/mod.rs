@@ -254,18 +254,20 @@ fn columns_where<T: Real>(
     row_len: usize,
     channels: usize,
 ) -> Range<usize> {
-    let hit = |i: usize| match others {
-        None => values[i] > T::zero(),
-        Some(others) => values[i] != others[i],
-    };
     let columns = row_len / channels;
     let (mut a, mut b) = (columns, 0);
     for start in (0..values.len()).step_by(row_len) {
-        if let Some(t) = (start..start + a * channels).find(|&i| hit(i)) {
-            a = (t - start) / channels;
+        let part = |range: Range<usize>| {
+            let range = start + range.start..start + range.end;
+            (&values[range.clone()], others.map(|o| &o[range]))
+        };
+        let (left, left_others) = part(0..a * channels);
+        if let Some(t) = first_hit(left, left_others) {
+            a = t / channels;
         }
-        if let Some(t) = (start + b * channels..start + row_len).rev().find(|&i| hit(i)) {
-            b = (t - start) / channels + 1;
+        let (right, right_others) = part(b * channels..row_len);
+        if let Some(t) = last_hit(right, right_others) {
+            b += t / channels + 1;
         }
     }
     if a < b {
@@ -273,6 +275,53 @@ fn columns_where<T: Real>(
     } else {
         0..0
     }
+}
+
+/// Elements tested together by [`first_hit`] and [`last_hit`], without an early exit
+/// (so the test vectorises).
+const HIT_BLOCK: usize = 32;
+
+/// Whether `values[i]` is positive, or, given `others`, differs from `others[i]`.
+#[inline(always)]
+fn hit<T: Real>(values: &[T], others: Option<&[T]>, i: usize) -> bool {
+    match others {
+        None => values[i] > T::zero(),
+        Some(others) => values[i] != others[i],
+    }
+}
+
+/// Whether some element of the block hits (see [`hit`]).
+#[inline(always)]
+fn block_hits<T: Real>(values: &[T], others: Option<&[T]>) -> bool {
+    match others {
+        None => values.iter().fold(false, |any, v| any | (*v > T::zero())),
+        Some(others) => values
+            .iter()
+            .zip(others)
+            .fold(false, |any, (x, y)| any | (x != y)),
+    }
+}
+
+/// The first index whose element hits (see [`hit`]).
+fn first_hit<T: Real>(values: &[T], others: Option<&[T]>) -> Option<usize> {
+    (0..values.len()).step_by(HIT_BLOCK).find_map(|start| {
+        let block = start..(start + HIT_BLOCK).min(values.len());
+        let block_others = others.map(|o| &o[block.clone()]);
+        block_hits(&values[block.clone()], block_others)
+            .then(|| block.clone().find(|&i| hit(values, others, i)))
+            .flatten()
+    })
+}
+
+/// The last index whose element hits (see [`hit`]).
+fn last_hit<T: Real>(values: &[T], others: Option<&[T]>) -> Option<usize> {
+    (0..values.len()).step_by(HIT_BLOCK).rev().find_map(|start| {
+        let block = start..(start + HIT_BLOCK).min(values.len());
+        let block_others = others.map(|o| &o[block.clone()]);
+        block_hits(&values[block.clone()], block_others)
+            .then(|| block.clone().rev().find(|&i| hit(values, others, i)))
+            .flatten()
+    })
 }
 
 /// Pixel columns `columns` widened by the window's half width on either side, within
@@ -295,4 +344,49 @@ fn bands(height: usize) -> impl IndexedParallelIterator<Item = (usize, usize)> {
     (0..height.div_ceil(BAND_ROWS))
         .into_par_iter()
         .map(move |b| (b * BAND_ROWS, ((b + 1) * BAND_ROWS).min(height)))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::testing::Rng;
+
+    /// The definition: every column with a hit in some row, as a hull.
+    fn hull(values: &[f32], others: Option<&[f32]>, row_len: usize, channels: usize) -> Range<usize> {
+        let cols: Vec<usize> = (0..values.len())
+            .filter(|&i| hit(values, others, i))
+            .map(|i| i % row_len / channels)
+            .collect();
+        match (cols.iter().min(), cols.iter().max()) {
+            (Some(&a), Some(&b)) => a..b + 1,
+            _ => 0..0,
+        }
+    }
+
+    #[test]
+    fn columns_where_is_the_hull_of_the_hits() {
+        let mut rng = Rng::new(7);
+        for (rows, columns, channels) in [(1, 1, 1), (3, 5, 3), (4, 70, 1), (6, 41, 3), (2, 200, 2)] {
+            let len = rows * columns * channels;
+            for density in [0.0, 0.002, 0.02, 0.3] {
+                let sparse = |rng: &mut Rng| -> Vec<f32> {
+                    (0..len)
+                        .map(|_| if rng.uniform(0.0, 1.0) < density { 0.5 } else { 0.0 })
+                        .collect()
+                };
+                let (values, others) = (sparse(&mut rng), vec![0.0; len]);
+                let row_len = columns * channels;
+                assert_eq!(
+                    columns_where(&values, None, row_len, channels),
+                    hull(&values, None, row_len, channels),
+                    "positive, {rows}×{columns}×{channels} at {density}"
+                );
+                assert_eq!(
+                    columns_where(&values, Some(&others), row_len, channels),
+                    hull(&values, Some(&others), row_len, channels),
+                    "differing, {rows}×{columns}×{channels} at {density}"
+                );
+            }
+        }
+    }
 }
