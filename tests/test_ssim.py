@@ -103,9 +103,51 @@ def test_identical_images_score_one_with_zero_gradient():
     _, target = images(40, 41)
     value, grad = value_and_grad(masked_ssim, target, target, make_mask("soft", 40, 41))
     assert abs(value.item() - 1) < 1e-14
-    assert grad.abs().max().item() < 1e-13
+    assert grad.abs().max().item() == 0  # SSIM's maximum, not its rounding
     value, grad = value_and_grad(masked_l1, target, target, None)
     assert value.item() == 0 and grad.abs().max().item() == 0
+
+
+def render_on_background(h=150, w=90, dtype=torch.float64):
+    """A photo of a head on a white background and a render of it that matches the
+    background exactly and the head only nearly (as a fit's), the head's mask, and the
+    pixels far from the head."""
+    g = torch.Generator().manual_seed(11)
+    y, x = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
+    head = ((y - 70) / 45.0) ** 2 + ((x - 40) / 25.0) ** 2 < 1
+    target = torch.ones(h, w, 3, dtype=torch.float64)
+    target[head] = torch.rand(int(head.sum()), 3, generator=g, dtype=torch.float64)
+    image = target.clone()
+    image[head] = (
+        target[head] + 0.1 * torch.randn(target[head].shape, generator=g, dtype=torch.float64)
+    ).clamp(0, 1)
+    # Columns more than two blur radii (10 px) from the head's: the kernel's bands skip them.
+    columns = head.any(0).nonzero().flatten()
+    far = (x < columns.min() - 10) | (x > columns.max() + 10)
+    return image.to(dtype), target.to(dtype), head.to(dtype), far
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_a_render_on_the_photos_background_matches_the_reference(masked):
+    """The kernel skips columns where the image equals the target over a whole window
+    (SSIM exactly 1, its gradient exactly 0) or the mask is 0: the same value and gradient
+    as the reference, and an exactly zero gradient beyond the head's reach."""
+    image, target, head, far = render_on_background()
+    mask = head if masked else None
+    value, grad = value_and_grad(masked_ssim, image, target, mask)
+    ref_value, ref_grad = value_and_grad(ref.masked_ssim, image, target, mask)
+    assert abs(value.item() - ref_value.item()) < 1e-14
+    assert (grad - ref_grad).abs().max().item() < 2e-15
+    assert grad[far].abs().max().item() == 0
+    # The training loss, in float32, as the fit calls it (no mask).
+    image32, target32 = image.float(), target.float()
+    x = image32.clone().requires_grad_(True)
+    ssim_l1(x, target32, ssim_weight=-0.2, l1_weight=0.64).backward()
+    x64 = image.clone().requires_grad_(True)
+    (-0.2 * ref.masked_ssim(x64, target) + 0.64 * ref.masked_l1(x64, target)).backward()
+    # float32 against the float64 reference: SSIM's variances cancel in float32
+    assert (x.grad.double() - x64.grad).abs().max().item() < 1e-4 * x64.grad.abs().max().item()
+    assert x.grad[far].abs().max().item() == 0
 
 
 def test_constant_images_follow_the_luminance_term():
