@@ -159,6 +159,16 @@ fn gradient_matches_central_differences() {
     }
 }
 
+/// The central difference of the masked SSIM along element `k` of the image.
+fn element_difference(case: &Case, k: usize, eps: f64) -> f64 {
+    let mut x = case.x.clone();
+    x[k] += eps;
+    let plus = masked_ssim(&case.inputs(&x)).unwrap();
+    x[k] -= 2.0 * eps;
+    let minus = masked_ssim(&case.inputs(&x)).unwrap();
+    (plus - minus) / (2.0 * eps)
+}
+
 #[test]
 fn gradient_elements_match_central_differences_near_borders() {
     let case = Case::new(9, 14, 2, 21).with_soft_mask(22);
@@ -166,12 +176,7 @@ fn gradient_elements_match_central_differences_near_borders() {
     let eps = 1e-6;
     let mut worst: f64 = 0.0;
     for k in 0..case.x.len() {
-        let mut x = case.x.clone();
-        x[k] += eps;
-        let plus = masked_ssim(&case.inputs(&x)).unwrap();
-        x[k] -= 2.0 * eps;
-        let minus = masked_ssim(&case.inputs(&x)).unwrap();
-        worst = worst.max(((plus - minus) / (2.0 * eps) - grad[k]).abs());
+        worst = worst.max((element_difference(&case, k, eps) - grad[k]).abs());
     }
     assert!(worst < 1e-9, "worst element error {worst}");
 }
@@ -222,12 +227,7 @@ fn check_patchy(case: &Case, stride: usize) {
         if k % stride != 0 && (i + j) % 7 != 0 {
             continue; // one element in `stride` by differences, to keep the test short
         }
-        let mut x = case.x.clone();
-        x[k] += eps;
-        let plus = masked_ssim(&case.inputs(&x)).unwrap();
-        x[k] -= 2.0 * eps;
-        let minus = masked_ssim(&case.inputs(&x)).unwrap();
-        worst = worst.max(((plus - minus) / (2.0 * eps) - grad[k]).abs());
+        worst = worst.max((element_difference(case, k, eps) - grad[k]).abs());
     }
     assert!(worst < 1e-9, "worst element error {worst}");
 }
