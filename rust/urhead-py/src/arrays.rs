@@ -23,6 +23,19 @@ pub fn optional_data<'a, T: Element>(
     arr.as_ref().map(|a| data(a, arg)).transpose()
 }
 
+/// [`optional_data`] of an array checked to have `ndim` dimensions (see [`shape`]).
+pub fn optional_shaped_data<'a, T: Element>(
+    arr: &'a Option<PyReadonlyArrayDyn<'_, T>>,
+    arg: &str,
+    ndim: usize,
+    layout: &str,
+) -> PyResult<Option<&'a [T]>> {
+    if let Some(a) = arr {
+        shape(a, arg, ndim, layout)?;
+    }
+    optional_data(arr, arg)
+}
+
 /// The contiguous data of `arr` to write in place, or an error naming `arg`.
 pub fn data_mut<'a, T: Element>(arr: &'a mut PyReadwriteArrayDyn<'_, T>, arg: &str) -> PyResult<&'a mut [T]> {
     arr.as_slice_mut().map_err(|_| {

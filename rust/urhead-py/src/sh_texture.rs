@@ -9,7 +9,7 @@ use pyo3::types::PyTuple;
 use urhead_core::raster::{self as kernel, ShTextureGradInputs, ShTextureInputs, Texel};
 use urhead_core::Real;
 
-use crate::arrays::{array, data, optional, optional_array, shape, with_float_type};
+use crate::arrays::{array, data, optional, optional_array, optional_shaped_data, shape, with_float_type};
 use crate::errors::py_err;
 use crate::pool::with_threads;
 
@@ -75,27 +75,9 @@ fn backward<'py, T: Element + Real>(
     let n = shape(&uv, "uv", 2, "(N, 2)")?[0];
     shape(&dirs, "dirs", 2, "(N, 3)")?;
     shape(&raw_rgb, "raw_rgb", 2, "(N, 3)")?;
-    let v_rgb = match &v_rgb {
-        Some(v) => {
-            shape(v, "v_rgb", 2, "(N, 3)")?;
-            Some(data(v, "v_rgb")?)
-        }
-        None => None,
-    };
-    let v_extra = match &v_extra {
-        Some(v) => {
-            shape(v, "v_extra", 2, "(N, E)")?;
-            Some(data(v, "v_extra")?)
-        }
-        None => None,
-    };
-    let slopes = match &slopes {
-        Some(s) => {
-            shape(s, "slopes", 3, "(N, 2, 3 + E)")?;
-            Some(data(s, "slopes")?)
-        }
-        None => None,
-    };
+    let v_rgb = optional_shaped_data(&v_rgb, "v_rgb", 2, "(N, 3)")?;
+    let v_extra = optional_shaped_data(&v_extra, "v_extra", 2, "(N, E)")?;
+    let slopes = optional_shaped_data(&slopes, "slopes", 3, "(N, 2, 3 + E)")?;
     let inputs = ShTextureGradInputs {
         uv: data(&uv, "uv")?,
         dirs: data(&dirs, "dirs")?,

@@ -103,12 +103,13 @@ pub fn masked_ssim<T: Real>(inputs: &SsimInputs<'_, T>) -> Result<T> {
     let partials: Vec<f64> = bands(inputs.height)
         .map(|(start, end)| {
             let columns = inputs.ssim_columns(start..end);
+            let wanted = elements(&columns, inputs.channels);
             let mut stream = MomentStream::new(inputs, start, &columns);
             // SSIM is exactly 1 off `columns` (see `ssim_columns`).
             let (mut ssim, mut weights) = (vec![T::one(); len], vec![T::zero(); len]);
             let mut total = 0.0;
             for row in start..end {
-                ssim_row(stream.row(row), &elements(&columns, inputs.channels), &mut ssim);
+                ssim_row(stream.row(row), &wanted, &mut ssim);
                 expand_mask_row(inputs, row, &mut weights);
                 total += dot(&ssim, &weights).to_f64().unwrap_or(f64::NAN);
             }

@@ -262,11 +262,11 @@ fn columns_where<T: Real>(
             (&values[range.clone()], others.map(|o| &o[range]))
         };
         let (left, left_others) = part(0..a * channels);
-        if let Some(t) = first_hit(left, left_others) {
+        if let Some(t) = find_hit::<T, false>(left, left_others) {
             a = t / channels;
         }
         let (right, right_others) = part(b * channels..row_len);
-        if let Some(t) = last_hit(right, right_others) {
+        if let Some(t) = find_hit::<T, true>(right, right_others) {
             b += t / channels + 1;
         }
     }
@@ -277,7 +277,7 @@ fn columns_where<T: Real>(
     }
 }
 
-/// Elements tested together by [`first_hit`] and [`last_hit`], without an early exit
+/// Elements tested together by [`find_hit`], without an early exit
 /// (so the test vectorises).
 const HIT_BLOCK: usize = 32;
 
@@ -302,26 +302,27 @@ fn block_hits<T: Real>(values: &[T], others: Option<&[T]>) -> bool {
     }
 }
 
-/// The first index whose element hits (see [`hit`]).
-fn first_hit<T: Real>(values: &[T], others: Option<&[T]>) -> Option<usize> {
-    (0..values.len()).step_by(HIT_BLOCK).find_map(|start| {
+/// The first index whose element hits (see [`hit`]), or with `FROM_END` the last: blocks
+/// are tested whole, and only the block that hits is searched element by element.
+fn find_hit<T: Real, const FROM_END: bool>(values: &[T], others: Option<&[T]>) -> Option<usize> {
+    let in_block = |start: usize| {
         let block = start..(start + HIT_BLOCK).min(values.len());
-        let block_others = others.map(|o| &o[block.clone()]);
-        block_hits(&values[block.clone()], block_others)
-            .then(|| block.clone().find(|&i| hit(values, others, i)))
-            .flatten()
-    })
-}
-
-/// The last index whose element hits (see [`hit`]).
-fn last_hit<T: Real>(values: &[T], others: Option<&[T]>) -> Option<usize> {
-    (0..values.len()).step_by(HIT_BLOCK).rev().find_map(|start| {
-        let block = start..(start + HIT_BLOCK).min(values.len());
-        let block_others = others.map(|o| &o[block.clone()]);
-        block_hits(&values[block.clone()], block_others)
-            .then(|| block.clone().rev().find(|&i| hit(values, others, i)))
-            .flatten()
-    })
+        if !block_hits(&values[block.clone()], others.map(|o| &o[block.clone()])) {
+            return None;
+        }
+        let is_hit = |i: &usize| hit(values, others, *i);
+        if FROM_END {
+            block.rev().find(is_hit)
+        } else {
+            block.clone().find(is_hit)
+        }
+    };
+    let blocks = (0..values.len()).step_by(HIT_BLOCK);
+    if FROM_END {
+        blocks.rev().find_map(in_block)
+    } else {
+        blocks.into_iter().find_map(in_block)
+    }
 }
 
 /// Pixel columns `columns` widened by the window's half width on either side, within
