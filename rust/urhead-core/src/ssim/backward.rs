@@ -15,9 +15,7 @@ use rayon::prelude::*;
 use super::blur::{PaddedRows, RowRing};
 use super::forward::{expand_mask_row, MomentStream, MOMENTS};
 use super::l1::{add_slope_row, row_sum};
-use super::{
-    bands, check_weight, elements, gaussian_window, widened, PixelTerms, SsimInputs, BAND_ROWS, WINDOW,
-};
+use super::{bands, check_weight, gaussian_window, PixelTerms, SsimInputs, BAND_ROWS, WINDOW};
 use crate::error::Result;
 use crate::memory::zeroed;
 use crate::parallel::dot;
@@ -107,12 +105,8 @@ fn band_with_grad<T: Real>(
     let (first, last) = (start.saturating_sub(half), (end + half).min(h));
     // The coefficients are zero off `columns` of these rows (see `ssim_columns`), so their
     // blur, the gradient, is zero off those widened by the window.
-    let columns = inputs.ssim_columns(first..last);
-    let (weighted, reached) = (
-        elements(&columns, inputs.channels),
-        elements(&widened(&columns, inputs.width), inputs.channels),
-    );
-    let mut moments = MomentStream::new(inputs, first, &columns);
+    let mut moments = MomentStream::new(inputs, first, &inputs.ssim_columns(first..last));
+    let (weighted, reached) = (moments.wanted(), moments.reach());
     // Zero outside `columns`, which the coefficients' horizontal pass reads as such.
     let mut coefficients = PaddedRows::<T, COEFFICIENTS>::new(inputs.width, inputs.channels);
     let mut ring = RowRing::new(h, COEFFICIENTS, len);

@@ -22,9 +22,10 @@ pub(super) struct MomentStream<'a, T> {
     products: PaddedRows<T, MOMENTS>,
     ring: RowRing<T>,
     moments: Vec<T>,
-    /// The elements of a row where moments are wanted, and those their horizontal pass reads.
+    /// The elements of a row where moments are wanted, and those widened by the window:
+    /// what their horizontal pass reads (and how far a blur of values on them reaches).
     wanted: Range<usize>,
-    read: Range<usize>,
+    reach: Range<usize>,
     /// The next input row to blur horizontally.
     next_input: usize,
 }
@@ -41,9 +42,20 @@ impl<'a, T: Real> MomentStream<'a, T> {
             ring: RowRing::new(inputs.height, MOMENTS, row_len),
             moments: vec![T::zero(); MOMENTS * row_len],
             wanted: elements(columns, c),
-            read: elements(&widened(columns, inputs.width), c),
+            reach: elements(&widened(columns, inputs.width), c),
             next_input: first_row.saturating_sub(WINDOW / 2),
         }
+    }
+
+    /// The elements of a row where the stream's moments are valid (its columns).
+    pub(super) fn wanted(&self) -> Range<usize> {
+        self.wanted.clone()
+    }
+
+    /// The elements a blur of values on the stream's columns can reach (its columns
+    /// widened by the window).
+    pub(super) fn reach(&self) -> Range<usize> {
+        self.reach.clone()
     }
 
     /// The moments of image row `row` (`MOMENTS` maps of `W·C`, valid on the stream's
@@ -64,7 +76,7 @@ impl<'a, T: Real> MomentStream<'a, T> {
         let x = &self.inputs.image[row * len..(row + 1) * len];
         let y = &self.inputs.target[row * len..(row + 1) * len];
         let [px, py, pxx, pyy, pxy] = self.products.interiors_mut();
-        for t in self.read.clone() {
+        for t in self.reach.clone() {
             let (a, b) = (x[t], y[t]);
             px[t] = a;
             py[t] = b;
@@ -103,8 +115,8 @@ pub fn masked_ssim<T: Real>(inputs: &SsimInputs<'_, T>) -> Result<T> {
     let partials: Vec<f64> = bands(inputs.height)
         .map(|(start, end)| {
             let columns = inputs.ssim_columns(start..end);
-            let wanted = elements(&columns, inputs.channels);
             let mut stream = MomentStream::new(inputs, start, &columns);
+            let wanted = stream.wanted();
             // SSIM is exactly 1 off `columns` (see `ssim_columns`).
             let (mut ssim, mut weights) = (vec![T::one(); len], vec![T::zero(); len]);
             let mut total = 0.0;

@@ -139,12 +139,7 @@ impl<T: Real> SsimInputs<'_, T> {
         let half = WINDOW / 2;
         let window_rows = rows.start.saturating_sub(half)..(rows.end + half).min(self.height);
         let reached = widened(&self.differing_columns(window_rows), self.width);
-        let (a, b) = (weighted.start.max(reached.start), weighted.end.min(reached.end));
-        if a < b {
-            a..b
-        } else {
-            0..0
-        }
+        span(weighted.start.max(reached.start), weighted.end.min(reached.end))
     }
 
     /// The pixel columns `[a, b)` holding every pixel of `rows` with a positive mask weight
@@ -270,6 +265,11 @@ fn columns_where<T: Real>(
             b += t / channels + 1;
         }
     }
+    span(a, b)
+}
+
+/// The columns `[a, b)`, or `0..0` when there are none.
+fn span(a: usize, b: usize) -> Range<usize> {
     if a < b {
         a..b
     } else {
