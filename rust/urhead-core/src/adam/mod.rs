@@ -29,7 +29,7 @@ use rayon::prelude::*;
 
 pub use journal::RowJournal;
 use journal::SaveSlots;
-use moments::{channel_random, row_seed};
+use moments::{row_seed, ChannelBits};
 pub use moments::{Bf16, Moment};
 
 use crate::error::{check_indices, check_len, first_pair_where, Error, Result};
@@ -349,6 +349,7 @@ fn step_chunk<M: Moment, G: RowGradients>(
     };
     let mut scratch = vec![0f32; c];
     let mut corrections = BiasCorrections::new(config);
+    let channel_bits = ChannelBits::new(c);
     for (i, &row) in chunk.iter().enumerate() {
         if let Some(&ahead) = chunk.get(i + PREFETCH_ROWS) {
             let r = ahead as usize - base;
@@ -389,7 +390,8 @@ fn step_chunk<M: Moment, G: RowGradients>(
         let (p, m, v) = (&mut p[rows.clone()], &mut m[rows.clone()], &mut v[rows]);
         let finite = if small {
             let seed = row_seed(row as u64, t);
-            update_row_f32(p, m, v, g, lr, corrections.at(t), config, seed)
+            let random = (ChannelBits::row_part(seed), channel_bits.parts());
+            update_row_f32(p, m, v, g, lr, corrections.at(t), config, random)
         } else {
             update_row_f64(p, m, v, g, lr, t, config);
             let moments = m.iter().chain(v.iter()).map(|x| x.load());
@@ -444,7 +446,16 @@ impl<'a> BiasCorrections<'a> {
 
 /// The common case, in f32 (vectorises), with the row's inverse bias corrections
 /// (see [`BiasCorrections`]). The step uses the moments as computed; only their stored
-/// copies are rounded, the second stochastically with the bits `seed` gives.
+/// copies are rounded, the second stochastically with the bits `random` gives (a row part
+/// and the channels' parts, see [`ChannelBits`]).
+///
+/// They are rounded without a NaN test (a compare and a blend per vector of each: the
+/// maps' step alone −2.2 ms paired on a real step, faster in 86 of 100). The gradient is
+/// finite and β ∈ [0, 1), so a new moment is NaN only where its stored one is: with finite
+/// moments each is a sum of two finite products, finite or ±∞, and rounds exactly as with
+/// the test. A NaN moment makes the channel's step NaN, so its parameter turns NaN and the
+/// row is reported non-finite as before; only what such a row's moments are rounded to
+/// (NaN, or another non-finite or wrapped value) is left unspecified.
 #[allow(clippy::too_many_arguments)]
 fn update_row_f32<M: Moment>(
     p: &mut [f32],
@@ -454,7 +465,7 @@ fn update_row_f32<M: Moment>(
     lr: &[f32],
     (inv_correction1, inv_sqrt_correction2): (f32, f32),
     config: &AdamConfig,
-    seed: u32,
+    (row_part, channel_parts): (u32, &[u32]),
 ) -> bool {
     // 1 − β in f64 first: 1 − 0.999f32 is off by 1.3e-5 relative in f32.
     let (b1, b2) = (config.beta1 as f32, config.beta2 as f32);
@@ -464,13 +475,13 @@ fn update_row_f32<M: Moment>(
     // unsigned max, which vectorises as a plain reduction) reach those of ∞ exactly when
     // some value is NaN or ±∞.
     let mut largest = 0u32;
-    let rows = p.iter_mut().zip(m).zip(v).zip(g).zip(lr).enumerate();
-    for (ch, ((((p, m), v), &g), &lr)) in rows {
+    let rows = p.iter_mut().zip(m).zip(v).zip(g).zip(lr).zip(channel_parts);
+    for (((((p, m), v), &g), &lr), &part) in rows {
         let mi = b1 * m.load() + one_minus_b1 * g;
         let vi = b2 * v.load() + one_minus_b2 * g * g;
         let step = (mi * inv_correction1) / (vi.sqrt() * inv_sqrt_correction2 + eps);
-        *m = M::round_nearest(mi);
-        *v = M::round_stochastic(vi, channel_random(seed, ch));
+        *m = M::round_nearest_not_nan(mi);
+        *v = M::round_stochastic_not_nan(vi, ChannelBits::random(row_part, part));
         *p -= step.clamp(-bound, bound) * lr;
         largest = largest
             .max(magnitude_bits(mi))
@@ -703,6 +714,44 @@ mod tests {
         assert_eq!(s, vec![0, 0, 0, 1, 0, 0, 0, 1, 0, 0]);
         for row in [0, 1, 2, 4, 5, 6, 8, 9] {
             assert_eq!(p[row * 2..row * 2 + 2], before[row * 2..row * 2 + 2]);
+        }
+    }
+
+    /// A stored NaN moment (the moments are rounded without a NaN test) still makes its
+    /// row's parameter NaN and the row reported non-finite; the other rows step as usual.
+    #[test]
+    fn a_nan_moment_is_reported_non_finite() {
+        for nan_in_first in [true, false] {
+            let n = 3;
+            let mut p: Vec<f32> = vec![1.0; n * 2];
+            let mut m = vec![Bf16(0); n * 2];
+            let mut v = vec![Bf16(0); n * 2];
+            let mut s = vec![0; n];
+            let nan = Bf16(0x7FFF); // a NaN with a full payload: rounding it wraps
+            if nan_in_first {
+                m[3] = nan;
+            } else {
+                v[3] = nan;
+            }
+            let mut st = SparseAdamState {
+                param: &mut p,
+                exp_avg: &mut m,
+                exp_avg_sq: &mut v,
+                steps: &mut s,
+                channels: 2,
+            };
+            let report = sparse_adam_step(
+                &mut st,
+                &[0, 1],
+                &[1.0, 1.0, 1.0, 1.0],
+                &[0.1, 0.1],
+                &CONFIG,
+                None,
+            )
+            .unwrap();
+            assert_eq!((report.rejected_rows, report.non_finite_rows), (0, 1));
+            assert!(p[3].is_nan());
+            assert!(p[..2].iter().chain(&p[2..3]).all(|x| (x - 0.9).abs() < 1e-6));
         }
     }
 
