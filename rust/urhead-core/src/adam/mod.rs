@@ -560,9 +560,10 @@ mod tests {
         )
     }
 
-    type Tables = (Vec<f32>, Vec<f32>, Vec<f32>, Vec<i32>);
+    /// Parameters, both moments (stored as `M`) and step counts.
+    type Tables<M = f32> = (Vec<f32>, Vec<M>, Vec<M>, Vec<i32>);
 
-    fn as_state(tables: &mut Tables, channels: usize) -> SparseAdamState<'_> {
+    fn as_state<M: Moment>(tables: &mut Tables<M>, channels: usize) -> SparseAdamState<'_, M> {
         let (param, exp_avg, exp_avg_sq, steps) = tables;
         SparseAdamState {
             param,
@@ -688,15 +689,9 @@ mod tests {
 
     #[test]
     fn first_step_moves_by_lr_against_the_gradient_sign() {
-        let (mut p, mut m, mut v, mut s) = state(10, 2);
-        let before = p.clone();
-        let mut st = SparseAdamState {
-            param: &mut p,
-            exp_avg: &mut m,
-            exp_avg_sq: &mut v,
-            steps: &mut s,
-            channels: 2,
-        };
+        let mut tables = state(10, 2);
+        let before = tables.0.clone();
+        let mut st = as_state(&mut tables, 2);
         let report = sparse_adam_step(
             &mut st,
             &[3, 7],
@@ -706,6 +701,7 @@ mod tests {
             None,
         )
         .unwrap();
+        let (p, _, _, s) = tables;
         assert_eq!((report.rejected_rows, report.non_finite_rows), (0, 0));
         assert_eq!(report.peaks, vec![5.0, 1e-30]);
         assert!((before[6] - p[6] - 0.1).abs() < 1e-6);
@@ -723,23 +719,19 @@ mod tests {
     fn a_nan_moment_is_reported_non_finite() {
         for nan_in_first in [true, false] {
             let n = 3;
-            let mut p: Vec<f32> = vec![1.0; n * 2];
-            let mut m = vec![Bf16(0); n * 2];
-            let mut v = vec![Bf16(0); n * 2];
-            let mut s = vec![0; n];
+            let mut tables: Tables<Bf16> = (
+                vec![1.0; n * 2],
+                vec![Bf16(0); n * 2],
+                vec![Bf16(0); n * 2],
+                vec![0; n],
+            );
             let nan = Bf16(0x7FFF); // a NaN with a full payload: rounding it wraps
             if nan_in_first {
-                m[3] = nan;
+                tables.1[3] = nan;
             } else {
-                v[3] = nan;
+                tables.2[3] = nan;
             }
-            let mut st = SparseAdamState {
-                param: &mut p,
-                exp_avg: &mut m,
-                exp_avg_sq: &mut v,
-                steps: &mut s,
-                channels: 2,
-            };
+            let mut st = as_state(&mut tables, 2);
             let report = sparse_adam_step(
                 &mut st,
                 &[0, 1],
@@ -749,6 +741,7 @@ mod tests {
                 None,
             )
             .unwrap();
+            let p = tables.0;
             assert_eq!((report.rejected_rows, report.non_finite_rows), (0, 1));
             assert!(p[3].is_nan());
             assert!(p[..2].iter().chain(&p[2..3]).all(|x| (x - 0.9).abs() < 1e-6));
