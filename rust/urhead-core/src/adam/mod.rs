@@ -348,6 +348,7 @@ fn step_chunk<M: Moment, G: RowGradients>(
         saved_rows: 0,
     };
     let mut scratch = vec![0f32; c];
+    let mut peak_bits = vec![0u32; c];
     let mut corrections = BiasCorrections::new(config);
     let channel_bits = ChannelBits::new(c);
     for (i, &row) in chunk.iter().enumerate() {
@@ -370,18 +371,16 @@ fn step_chunk<M: Moment, G: RowGradients>(
             }
         }
         // One pass: each channel's peak, and whether every entry is small enough for the
-        // f32 update (false for NaN and ±∞ too). f32::max maps NaN to the other operand.
-        let mut small = true;
-        for (peak, x) in report.peaks.iter_mut().zip(g) {
-            *peak = peak.max(x.abs());
-            small &= x.abs() <= F32_SAFE_GRAD;
+        // f32 update, on magnitude bits (see `magnitude_bits`): integer maxima vectorise
+        // without `f32::max`'s NaN handling, and NaN and ±∞ are larger than any finite value.
+        let mut largest = 0u32;
+        for (peak, x) in peak_bits.iter_mut().zip(g) {
+            let bits = magnitude_bits(*x);
+            *peak = (*peak).max(bits);
+            largest = largest.max(bits);
         }
+        let small = largest <= F32_SAFE_GRAD.to_bits();
         if !small && g.iter().any(|x| !x.is_finite()) {
-            for (peak, x) in report.peaks.iter_mut().zip(g) {
-                if !x.is_finite() {
-                    *peak = f32::INFINITY;
-                }
-            }
             report.rejected_rows += 1;
             continue;
         }
@@ -400,6 +399,10 @@ fn step_chunk<M: Moment, G: RowGradients>(
         if !finite {
             report.non_finite_rows += 1;
         }
+    }
+    // NaN's bits lie above ∞'s: a channel that saw one peaks at +∞.
+    for (peak, bits) in report.peaks.iter_mut().zip(peak_bits) {
+        *peak = f32::from_bits(bits.min(f32::INFINITY.to_bits()));
     }
     report
 }
@@ -904,6 +907,55 @@ mod tests {
         )
         .unwrap();
         assert_eq!(report.non_finite_rows, 1); // f32::MAX + f32::MAX overflows
+    }
+
+    /// Each channel's peak is its largest |g| over rows of every kind and every chunk: the
+    /// f32 path's, the f64 path's (huge) and the rejected rows' (non-finite, of either sign
+    /// and any NaN payload, reported +∞), signed zeros and subnormals included.
+    #[test]
+    fn peaks_are_each_channels_largest_magnitude_over_all_chunks() {
+        let (rows, c) = (3 * ROW_CHUNK + 17, 5);
+        let mut rng = crate::testing::Rng::new(7);
+        let mut grads: Vec<f32> = rng.vec(rows * c, -2.0, 2.0);
+        let specials = [
+            -0.0,
+            f32::MIN_POSITIVE / 4.0,
+            -3e20,
+            f32::MAX,
+            f32::NEG_INFINITY,
+            f32::from_bits(0xFFC0_0001), // a negative NaN with a payload
+            f32::NAN,
+        ];
+        for (k, x) in specials.into_iter().enumerate() {
+            grads[(ROW_CHUNK * (k % 3) + 11 * k) * c + k % c] = x;
+        }
+        let mut tables: Tables = state(rows, c);
+        let row_ids: Vec<i64> = (0..rows as i64).collect();
+        let report = sparse_adam_step(
+            &mut as_state(&mut tables, c),
+            &row_ids,
+            &grads,
+            &vec![1e-3; c],
+            &CONFIG,
+            None,
+        )
+        .unwrap();
+        let expected: Vec<f32> = (0..c)
+            .map(|j| {
+                let column = grads.iter().skip(j).step_by(c);
+                column.fold(0.0f32, |a: f32, x: &f32| {
+                    if x.is_finite() {
+                        a.max(x.abs())
+                    } else {
+                        f32::INFINITY
+                    }
+                })
+            })
+            .collect();
+        assert_eq!(report.peaks, expected);
+        assert_eq!(report.rejected_rows, 3);
+        let huge = [f32::INFINITY, f32::INFINITY, 3e20, f32::MAX, f32::INFINITY];
+        assert_eq!(report.peaks, huge);
     }
 
     /// Each way a finite gradient's update can come out NaN or infinite — a stored moment
