@@ -2,6 +2,7 @@
 //! convention, plus the 3DGS colour mapping `max(Σ b_k·c_k + 0.5, 0)`.
 
 use crate::mat3::map3;
+use crate::memory::Slot;
 use crate::Real;
 
 const C0: f64 = 0.282_094_791_773_878_14;
@@ -136,10 +137,10 @@ pub fn unclamped<T: Real>(raw: [T; 3], v_rgb: [T; 3]) -> [T; 3] {
 /// `dst[3k + c] = b_k·v[c]` for the `dst.len() / 3` coefficients: the coefficients'
 /// gradient of [`sh_sum`] given the colour's `v`.
 #[inline(always)]
-pub fn sh_sum_adjoint<T: Real>(b: &[T; 16], v: [T; 3], dst: &mut [T]) {
+pub fn sh_sum_adjoint<T: Real, O: Slot<T>>(b: &[T; 16], v: [T; 3], dst: &mut [O]) {
     for (k, row) in dst.chunks_exact_mut(3).enumerate() {
         for ch in 0..3 {
-            row[ch] = b[k] * v[ch];
+            row[ch].set(b[k] * v[ch]);
         }
     }
 }

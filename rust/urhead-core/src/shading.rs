@@ -7,11 +7,13 @@
 //! colour in the first `3·(degree+1)²`), so a view of the packed UV-map samples needs no
 //! copy; the gradient is returned in the same `stride` layout, zero outside the colour.
 
+use std::mem::MaybeUninit;
+
 use rayon::prelude::*;
 
 use crate::error::{check_finite, check_len, Error, Result};
 use crate::mat3::map3;
-use crate::memory::zeroed;
+use crate::memory::{assume_written, unwritten};
 use crate::sh::{direction, num_sh_coeffs, sh_basis, sh_sum, sh_sum_adjoint, unclamped};
 use crate::Real;
 
@@ -123,9 +125,9 @@ pub fn shade_backward<T: Real>(
         }
         check_len("rest", rest.values, count * rest.width, "(P, width)")?;
     }
-    // Zeroed on the pool: a reused heap block is otherwise cleared by one serial memset
-    // (5.4 MB for 24k Gaussians' rows) while the other worker waits.
-    let mut v_coeffs = zeroed("SH coefficient gradient (P, stride)", count * stride)?;
+    // Every row written whole on the pool: neither a serial memset of a reused heap block
+    // (5.4 MB for 24k Gaussians' rows) nor a zeroing pass before the rows are written.
+    let mut v_coeffs = unwritten("SH coefficient gradient (P, stride)", count * stride)?;
     v_coeffs
         .par_chunks_mut(CHUNK * stride)
         .enumerate()
@@ -135,16 +137,19 @@ pub fn shade_backward<T: Real>(
                 let (b, _) = sh_basis(inputs.degree, inputs.dir(i), false);
                 let v = unclamped(inputs.raw(i, &b), map3(|ch| v_rgb[3 * i + ch]));
                 sh_sum_adjoint(&b, v, &mut row[..3 * n]);
+                row[3 * n..].fill(MaybeUninit::new(T::zero()));
                 if let Some(rest) = &rest {
                     let given = &rest.values[i * rest.width..(i + 1) * rest.width];
                     for (out, &g) in row[rest.start..rest.start + rest.width].iter_mut().zip(given) {
                         // Added to the zero entry, as autograd's sum would be (−0 becomes +0).
-                        *out = T::zero() + g;
+                        out.write(T::zero() + g);
                     }
                 }
             }
         });
-    Ok(v_coeffs)
+    // SAFETY: the blocks partition the rows, and every row was written whole above (the
+    // colour's coefficients, then zeros over the rest).
+    Ok(unsafe { assume_written(v_coeffs) })
 }
 
 #[cfg(test)]

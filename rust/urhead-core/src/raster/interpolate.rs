@@ -4,6 +4,7 @@
 //! image or at a list of pixels only (the covered ones, say), which skips the full-image
 //! output and, in the adjoint, the full-image output gradient.
 
+use std::mem::MaybeUninit;
 use std::ops::Range;
 
 use rayon::prelude::*;
@@ -11,7 +12,7 @@ use rayon::prelude::*;
 use super::runs::{merge_runs, TriangleRuns};
 use super::{check_faces, check_tri_id, TILE_ROWS};
 use crate::error::{check_finite, check_indices, check_len, Error, Result};
-use crate::memory::zeroed;
+use crate::memory::{assume_written, unwritten, zeroed};
 use crate::Real;
 
 /// Gradients of [`interpolate_backward`]; a field is `Some` exactly when it was asked for.
@@ -255,7 +256,7 @@ impl<'a, T: Real> Inputs<'a, T> {
 
     fn forward<S: Sites, K: Channels>(&self, sites: S, width: K) -> Result<Vec<T>> {
         let c = width.get();
-        let mut out = zeroed("interpolated values", sites.len() * c)?;
+        let mut out = unwritten("interpolated values", sites.len() * c)?;
         out.par_chunks_mut(self.tile_len() * c)
             .enumerate()
             .for_each(|(chunk, out)| {
@@ -264,17 +265,20 @@ impl<'a, T: Real> Inputs<'a, T> {
                     let idx = sites.pixel(first + i);
                     let tri = self.tri_id[idx];
                     if tri < 0 {
+                        px.fill(MaybeUninit::new(T::zero()));
                         continue;
                     }
                     let (b1, b2) = (self.bary[2 * idx], self.bary[2 * idx + 1]);
                     let b0 = T::one() - b1 - b2;
                     let [a0, a1, a2] = self.corners(tri, width);
                     for k in 0..c {
-                        px[k] = b0 * a0[k] + b1 * a1[k] + b2 * a2[k];
+                        px[k].write(b0 * a0[k] + b1 * a1[k] + b2 * a2[k]);
                     }
                 }
             });
-        Ok(out)
+        // SAFETY: the chunks partition the sites' rows, and each row was written whole
+        // (zeros off the mesh).
+        Ok(unsafe { assume_written(out) })
     }
 
     fn backward<S: Sites, K: Channels>(

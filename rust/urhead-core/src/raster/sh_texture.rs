@@ -27,6 +27,7 @@
 //! non-finite coordinate reads zeros — colour 0.5 — and passes no UV gradient). Directions
 //! are constants and must be finite.
 
+use std::mem::MaybeUninit;
 use std::ops::Range;
 
 use rayon::prelude::*;
@@ -35,7 +36,7 @@ use super::taps::{bilinear_taps, prefetch_taps, Taps, TexShape, PREFETCH_DISTANC
 use super::texel::Texel;
 use super::texture::{blend, validate};
 use crate::error::{check_finite, check_len, Error, Result};
-use crate::memory::{copy_short, zeroed};
+use crate::memory::{assume_written, copy_short, unwritten, written_part, zeroed, Slot};
 use crate::parallel::optional_chunks;
 use crate::sh::{direction, num_sh_coeffs, sh_basis, sh_sum, sh_sum_adjoint, unclamped};
 use crate::Real;
@@ -165,13 +166,14 @@ pub fn sh_texture_forward<T: Real, S: Texel<T>>(
     check_finite("dirs", inputs.dirs)?;
     let (c, extra) = (inputs.channels, inputs.extra.clone());
     let (e, width) = (extra.len(), 3 + extra.len());
-    let mut rgb = zeroed("sh_texture colour (N, 3)", n * 3)?;
-    let mut extra_out = zeroed("sh_texture extra channels (N, E)", n * e)?;
+    // Every output is written whole, sample by sample, below: none is zeroed first.
+    let mut rgb = unwritten("sh_texture colour (N, 3)", n * 3)?;
+    let mut extra_out = unwritten("sh_texture extra channels (N, E)", n * e)?;
     let mut raw = for_backward
-        .then(|| zeroed("sh_texture colour (N, 3)", n * 3))
+        .then(|| unwritten("sh_texture colour (N, 3)", n * 3))
         .transpose()?;
     let mut slope_out = slopes
-        .then(|| zeroed("sh_texture slopes (N, 2, 3 + E)", n * 2 * width))
+        .then(|| unwritten("sh_texture slopes (N, 2, 3 + E)", n * 2 * width))
         .transpose()?;
     let tasks = n.div_ceil(SAMPLE_CHUNK);
     let extra_chunks = optional_chunks((e > 0).then_some(&mut extra_out[..]), SAMPLE_CHUNK * e, tasks);
@@ -224,13 +226,13 @@ pub fn sh_texture_forward<T: Real, S: Texel<T>>(
                 let rgb = sh_sum(&b, &row[..colour], T::c(0.5));
                 for ch in 0..3 {
                     // NaN-safe clamp, as the shading op: a NaN coefficient gives NaN.
-                    out[ch] = if rgb[ch] < T::zero() { T::zero() } else { rgb[ch] };
+                    out[ch].set(if rgb[ch] < T::zero() { T::zero() } else { rgb[ch] });
                 }
                 if let Some(extra_out) = extra_out.as_deref_mut() {
                     copy_short(&mut extra_out[e * i..], &row[extra.start..], e);
                 }
                 if let Some(raw) = raw.as_deref_mut() {
-                    raw[3 * i..3 * i + 3].copy_from_slice(&rgb);
+                    copy_short(&mut raw[3 * i..], &rgb, 3);
                 }
                 if let Some(s) = slope_out.as_deref_mut() {
                     let s = &mut s[2 * width * i..2 * width * (i + 1)];
@@ -240,29 +242,37 @@ pub fn sh_texture_forward<T: Real, S: Texel<T>>(
                         sh_sum(&b, &d_fy[..colour], T::zero()),
                     );
                     for ch in 0..3 {
-                        along_u[ch] = su[ch] * du;
-                        along_v[ch] = sv[ch] * dv;
+                        along_u[ch].set(su[ch] * du);
+                        along_v[ch].set(sv[ch] * dv);
                     }
                     for (j, k) in extra.clone().enumerate() {
-                        along_u[3 + j] = d_fx[k] * du;
-                        along_v[3 + j] = d_fy[k] * dv;
+                        along_u[3 + j].set(d_fx[k] * du);
+                        along_v[3 + j].set(d_fy[k] * dv);
                     }
                 }
             }
+            // SAFETY: the loop wrote each sample's colour and extra channels.
+            let (rgb_out, extra_out) = unsafe {
+                let extra_out = extra_out.as_deref().unwrap_or(&[]);
+                (written_part(rgb_out), written_part(extra_out))
+            };
             // x·0 ≠ 0 exactly for NaN and ±inf (an OR-reduction vectorises).
-            let extra_out = extra_out.as_deref().unwrap_or(&[]);
             (rgb_out.iter().chain(extra_out)).fold(false, |bad, &x| bad | (x * T::zero() != T::zero()))
         })
         .reduce(|| false, |a, b| a | b);
     if non_finite {
         S::check_finite("tex", inputs.tex)?;
     }
-    Ok(ShTextureOutput {
-        rgb,
-        extra: extra_out,
-        raw_rgb: raw,
-        slopes: slope_out,
-    })
+    // SAFETY: the chunks partition the samples, and the loop wrote every sample's colour,
+    // extra channels, pre-clamp colour and both slopes (3 + E values each).
+    unsafe {
+        Ok(ShTextureOutput {
+            rgb: assume_written(rgb),
+            extra: assume_written(extra_out),
+            raw_rgb: raw.map(|raw| assume_written(raw)),
+            slopes: slope_out.map(|slopes| assume_written(slopes)),
+        })
+    }
 }
 
 /// Adjoint of [`sh_texture_forward`]: the rows' gradient (with `need_rows`) and, when the
@@ -294,7 +304,7 @@ pub fn sh_texture_backward<T: Real>(
         )?;
     }
     let mut v_rows = need_rows
-        .then(|| zeroed("sh_texture row gradient (N, C)", n * c))
+        .then(|| unwritten("sh_texture row gradient (N, C)", n * c))
         .transpose()?;
     let mut v_uv = g
         .slopes
@@ -324,6 +334,9 @@ pub fn sh_texture_backward<T: Real>(
                     let row = &mut rows[c * i..c * (i + 1)];
                     let (b, _) = sh_basis(g.degree, direction(g.dirs, s), false);
                     sh_sum_adjoint(&b, v_rgb, &mut row[..colour]);
+                    // Zeros past the colour, then the extra channels (after the colour when
+                    // there are any) over theirs: every channel of the row is written.
+                    row[colour..].fill(MaybeUninit::new(T::zero()));
                     copy_short(&mut row[extra.start..], v_extra, e);
                 }
                 if let (Some(v_uv), Some(slopes)) = (v_uv.as_deref_mut(), g.slopes) {
@@ -342,6 +355,8 @@ pub fn sh_texture_backward<T: Real>(
                 }
             }
         });
+    // SAFETY: the chunks partition the rows, and each chunk's loop wrote every row of it.
+    let v_rows = v_rows.map(|rows| unsafe { assume_written(rows) });
     Ok(ShTextureGrads { v_rows, v_uv })
 }
 

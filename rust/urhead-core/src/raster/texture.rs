@@ -19,7 +19,9 @@ use super::taps::{
     PREFETCH_DISTANCE, SAMPLE_CHUNK,
 };
 use crate::error::{check_finite, check_len, checked_size, Error, Result};
-use crate::memory::zeroed;
+use std::mem::MaybeUninit;
+
+use crate::memory::{assume_written, unwritten, written_part, zeroed, Slot};
 use crate::Real;
 
 /// Texel indices are stored as u32.
@@ -30,11 +32,11 @@ const MAX_TEXELS: usize = u32::MAX as usize;
 /// overlap the rows). Blocks of 8 indexed channels stayed scalar (bounds checks and
 /// stores between the loads defeat the block vectoriser), ~30 % of a lookup's time.
 #[inline(always)]
-pub(crate) fn blend<T: Real>(o: &mut [T], rows: [&[T]; 4], w: [T; 4]) {
+pub(crate) fn blend<T: Real, O: Slot<T>>(o: &mut [O], rows: [&[T]; 4], w: [T; 4]) {
     let [r0, r1, r2, r3] = rows.map(|r| &r[..o.len()]); // every row covers the output
     let values = o.iter_mut().zip(r0).zip(r1).zip(r2).zip(r3);
     for ((((o, &a), &b), &c), &d) in values {
-        *o = w[0] * a + w[1] * b + w[2] * c + w[3] * d;
+        o.set(w[0] * a + w[1] * b + w[2] * c + w[3] * d);
     }
 }
 
@@ -88,7 +90,7 @@ pub fn texture_forward<T: Real>(
     };
     let n = validate(tex, &shape, uv)?;
     let c = channels;
-    let mut out = zeroed("texture samples (N, C)", n * c)?;
+    let mut out = unwritten("texture samples (N, C)", n * c)?;
     let non_finite = out
         .par_chunks_mut(SAMPLE_CHUNK * c)
         .enumerate()
@@ -103,14 +105,17 @@ pub fn texture_forward<T: Real>(
                 if let Some(Some(ahead)) = taps.get(i + PREFETCH_DISTANCE) {
                     prefetch_taps(ahead, tex, c);
                 }
-                if let Some(t) = &taps[i] {
-                    blend(
+                match &taps[i] {
+                    Some(t) => blend(
                         o,
                         t.texel.map(|k| &tex[k as usize * c..(k as usize + 1) * c]),
                         t.weight,
-                    );
+                    ),
+                    None => o.fill(MaybeUninit::new(T::zero())),
                 }
             }
+            // SAFETY: every row of the chunk was written just above, blended or zeros.
+            let out = unsafe { written_part(out) };
             // x·0 ≠ 0 exactly for NaN and ±inf; an OR-reduction vectorises (a float sum or
             // an early-exit `any` would not).
             out.iter()
@@ -120,7 +125,8 @@ pub fn texture_forward<T: Real>(
     if non_finite {
         check_finite("tex", tex)?;
     }
-    Ok(out)
+    // SAFETY: the chunks partition `out`, and each wrote every one of its rows.
+    Ok(unsafe { assume_written(out) })
 }
 
 /// The texture gradient of lookups of a `(Ht, Wt, C)` texture, given as `segments` (each
@@ -229,4 +235,52 @@ pub fn texture_backward<T: Real>(
         None
     };
     Ok(TextureGrads { v_tex, v_uv })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::testing::Rng;
+
+    /// Each row is the plain bilinear sum of the four texels around its UV (edges
+    /// clamped), and a non-finite UV reads a row of zeros: every row written, in every
+    /// chunk (the unit tests' unwritten buffers start as NaN).
+    #[test]
+    fn lookups_are_the_plain_bilinear_sums_and_zeros_off_the_texture() {
+        let (h, w, c) = (5, 7, 3);
+        let mut rng = Rng::new(3);
+        let tex: Vec<f64> = rng.vec(h * w * c, -1.0, 1.0);
+        let n = 2 * SAMPLE_CHUNK + 5;
+        let mut uv: Vec<f64> = rng.vec(2 * n, -0.1, 1.1);
+        let off = [f64::NAN, f64::INFINITY, f64::NEG_INFINITY];
+        for (k, bad) in off.into_iter().enumerate() {
+            uv[2 * (k * SAMPLE_CHUNK + 1) + k % 2] = bad;
+        }
+        let out = texture_forward(&tex, h, w, c, &uv).unwrap();
+        let texel = |row: f64, col: f64| {
+            let (r, cl) = (row.clamp(0.0, (h - 1) as f64), col.clamp(0.0, (w - 1) as f64));
+            &tex[(r as usize * w + cl as usize) * c..][..c]
+        };
+        for (s, got) in out.chunks_exact(c).enumerate() {
+            let (u, v) = (uv[2 * s], uv[2 * s + 1]);
+            if !(u.is_finite() && v.is_finite()) {
+                assert!(got.iter().all(|&x| x == 0.0), "sample {s}: {got:?}");
+                continue;
+            }
+            let (x, y) = (u * w as f64 - 0.5, (1.0 - v) * h as f64 - 0.5);
+            let (x0, y0) = (x.floor(), y.floor());
+            let (fx, fy) = (x - x0, y - y0);
+            for ch in 0..c {
+                let want = (1.0 - fx) * (1.0 - fy) * texel(y0, x0)[ch]
+                    + fx * (1.0 - fy) * texel(y0, x0 + 1.0)[ch]
+                    + (1.0 - fx) * fy * texel(y0 + 1.0, x0)[ch]
+                    + fx * fy * texel(y0 + 1.0, x0 + 1.0)[ch];
+                assert!(
+                    (got[ch] - want).abs() < 1e-12,
+                    "sample {s} channel {ch}: {} vs {want}",
+                    got[ch]
+                );
+            }
+        }
+    }
 }
