@@ -15,7 +15,7 @@ use rayon::prelude::*;
 
 use crate::error::{check_len, Result};
 use crate::mat3::{dot, matvec, matvec_t, outer, M3, V3};
-use crate::memory::zeroed;
+use crate::memory::{assume_written, copy_short, unwritten};
 use crate::parallel::optional_chunks;
 use crate::Real;
 
@@ -134,15 +134,16 @@ pub(crate) fn normalise_backward<T: Real>(n: &V3<T>, len: T, v_n: &V3<T>) -> V3<
 /// (N, 3) unit `R·v` (`Rᵀ·v` with `transpose`), zero for a zero product.
 pub fn rotate_normalize_forward<T: Real>(inputs: &RotateInputs<'_, T>) -> Result<Vec<T>> {
     let n = inputs.validate()?;
-    let mut out = zeroed("rotate_normalize output", n * 3)?;
+    let mut out = unwritten("rotate_normalize output", n * 3)?;
     out.par_chunks_mut(CHUNK * 3).enumerate().for_each(|(c, block)| {
         for (j, unit) in block.chunks_exact_mut(3).enumerate() {
             let i = c * CHUNK + j;
             let rotated = inputs.rotated(&inputs.matrix(i), &inputs.vector(i));
-            unit.copy_from_slice(&normalise(rotated).0);
+            copy_short(unit, &normalise(rotated).0, 3);
         }
     });
-    Ok(out)
+    // SAFETY: the blocks partition the rows, and each row was written whole.
+    Ok(unsafe { assume_written(out) })
 }
 
 /// The adjoint of [`rotate_normalize_forward`] from ∂L/∂output (N, 3), computing only the
@@ -156,8 +157,9 @@ pub fn rotate_normalize_backward<T: Real>(
     let n = inputs.validate()?;
     check_len("v_out", v_out, n * 3, &format!("(N, 3) with N = {n}"))?;
     let size = |needed: bool, width: usize| if needed { n * width } else { 0 };
-    let mut v_rotations = zeroed("rotate_normalize rotation gradient", size(needs.rotations, 9))?;
-    let mut v_vectors = zeroed("rotate_normalize vector gradient", size(needs.vectors, 3))?;
+    // Written whole, row by row, below (when asked for; empty otherwise).
+    let mut v_rotations = unwritten("rotate_normalize rotation gradient", size(needs.rotations, 9))?;
+    let mut v_vectors = unwritten("rotate_normalize vector gradient", size(needs.vectors, 3))?;
     let tasks = n.div_ceil(CHUNK);
     let rotation_chunks = optional_chunks(
         needs.rotations.then_some(v_rotations.as_mut_slice()),
@@ -188,7 +190,7 @@ pub fn rotate_normalize_backward<T: Real>(
                         outer(&g, &vector)
                     };
                     for (dst, src) in dr[9 * j..9 * j + 9].iter_mut().zip(v_r.iter().flatten()) {
-                        *dst = *src;
+                        dst.write(*src);
                     }
                 }
                 if let Some(dv) = dv.as_deref_mut() {
@@ -197,10 +199,13 @@ pub fn rotate_normalize_backward<T: Real>(
                     } else {
                         matvec_t(&matrix, &g)
                     };
-                    dv[3 * j..3 * j + 3].copy_from_slice(&v_v);
+                    copy_short(&mut dv[3 * j..], &v_v, 3);
                 }
             }
         });
+    // SAFETY: the chunks partition the rows, and every row of an asked-for gradient was
+    // written whole (9 and 3 values); one not asked for is empty.
+    let (v_rotations, v_vectors) = unsafe { (assume_written(v_rotations), assume_written(v_vectors)) };
     Ok(RotateGrads {
         v_rotations: needs.rotations.then_some(v_rotations),
         v_vectors: needs.vectors.then_some(v_vectors),

@@ -17,7 +17,7 @@
 use rayon::prelude::*;
 
 use crate::error::{check_len, first_pair_where, Error, Result};
-use crate::memory::{copy_short, zeroed};
+use crate::memory::{assume_written, copy_short, unwritten, zeroed};
 use crate::Real;
 
 /// Pixels per parallel work item.
@@ -130,14 +130,16 @@ pub fn scatter_pixels_forward<T: Real>(
     let w = inputs.value_channels(fill.len())?;
     check_len("values", values, p * w, &format!("(P, C − K) = ({p}, {w})"))?;
     check_len("background", background, c, &format!("(C,) = ({c},)"))?;
-    let mut image = zeroed("scattered image (H, W, C)", inputs.pixel_count * c)?;
+    let mut image = unwritten("scattered image (H, W, C)", inputs.pixel_count * c)?;
     // One chunk of background, copied in one go (per pixel, a `c`-long copy is a call).
     let template = background.repeat(CHUNK);
     image
         .par_chunks_mut(CHUNK * c)
         .enumerate()
         .for_each(|(chunk, out)| {
-            out.copy_from_slice(&template[..out.len()]);
+            for (pixel, &value) in out.iter_mut().zip(&template) {
+                pixel.write(value);
+            }
             let first = chunk * CHUNK;
             let (start, listed) = inputs.listed_in(chunk);
             for (i, &q) in listed.iter().enumerate() {
@@ -146,7 +148,9 @@ pub fn scatter_pixels_forward<T: Real>(
                 copy_short(&mut row[w..], fill, fill.len());
             }
         });
-    Ok(image)
+    // SAFETY: the chunks partition the image, and each was first written whole with the
+    // background (the template is as long as a chunk).
+    Ok(unsafe { assume_written(image) })
 }
 
 /// The gradients of [`scatter_pixels_backward`], `None` where not asked for.
