@@ -12,7 +12,7 @@
 use rayon::prelude::*;
 
 use crate::error::{check_len, Error, Result};
-use crate::memory::zeroed;
+use crate::memory::{assume_written, unwritten, zeroed};
 use crate::parallel::optional_chunks;
 use crate::Real;
 
@@ -63,7 +63,7 @@ impl<T: Real> CompositeInputs<'_, T> {
 pub fn composite_forward<T: Real>(inputs: &CompositeInputs<'_, T>) -> Result<Vec<T>> {
     let p = inputs.validate()?;
     let s = inputs.back_channels;
-    let mut out = zeroed("composite (P, 3)", 3 * p)?;
+    let mut out = unwritten("composite (P, 3)", 3 * p)?;
     out.par_chunks_mut(3 * CHUNK)
         .enumerate()
         .for_each(|(chunk, out)| {
@@ -76,11 +76,12 @@ pub fn composite_forward<T: Real>(inputs: &CompositeInputs<'_, T>) -> Result<Vec
                     &inputs.back[s * px..s * px + 3],
                 );
                 for c in 0..3 {
-                    o[c] = front[c] + t * back[c];
+                    o[c].write(front[c] + t * back[c]);
                 }
             }
         });
-    Ok(out)
+    // SAFETY: the chunks partition the pixels, and each pixel's 3 values were written.
+    Ok(unsafe { assume_written(out) })
 }
 
 /// The adjoint of [`composite_forward`] given `v_out (P, 3)`: `v_T = Σ_c v_out·back`,
@@ -123,8 +124,9 @@ pub(crate) fn behind_gradients<T: Real>(
     need_back: bool,
 ) -> Result<CompositeGrads<T>> {
     let p = transmittance.len();
+    // The transmittance's written whole below; the back's only on its first C channels.
     let mut v_t = need_transmittance
-        .then(|| zeroed("transmittance gradient (P,)", p))
+        .then(|| unwritten("transmittance gradient (P,)", p))
         .transpose()?;
     let mut v_back = need_back
         .then(|| zeroed("back gradient (P, S)", s * p))
@@ -147,10 +149,10 @@ pub(crate) fn behind_gradients<T: Real>(
                     for k in 1..c {
                         dot += g[k] * behind[k];
                     }
-                    v_t[i] = match v_t_in {
+                    v_t[i].write(match v_t_in {
                         Some(v) => dot + v[px],
                         None => dot,
-                    };
+                    });
                 }
                 if let Some(v_back) = v_back.as_deref_mut() {
                     let t = transmittance[px];
@@ -161,7 +163,8 @@ pub(crate) fn behind_gradients<T: Real>(
             }
         });
     Ok(CompositeGrads {
-        v_transmittance: v_t,
+        // SAFETY: the chunks partition the pixels, and each pixel's entry was written.
+        v_transmittance: v_t.map(|v| unsafe { assume_written(v) }),
         v_back,
     })
 }
