@@ -298,6 +298,13 @@ pub unsafe fn written_part<T>(part: &[MaybeUninit<T>]) -> &[T] {
     unsafe { &*(part as *const [MaybeUninit<T>] as *const [T]) }
 }
 
+/// Zeros written over `part` of an [`unwritten`] buffer (the elements a kernel leaves at
+/// zero: a lookup off the texture, the channels past a row's colour).
+#[inline(always)]
+pub fn write_zeros<T: crate::Real>(part: &mut [MaybeUninit<T>]) {
+    part.fill(MaybeUninit::new(T::zero()));
+}
+
 /// Where a kernel puts an output value: an element of a written buffer, or of an
 /// [`unwritten`] one. The same kernel code then writes either.
 pub trait Slot<T>: Sized {

@@ -7,13 +7,11 @@
 //! colour in the first `3·(degree+1)²`), so a view of the packed UV-map samples needs no
 //! copy; the gradient is returned in the same `stride` layout, zero outside the colour.
 
-use std::mem::MaybeUninit;
-
 use rayon::prelude::*;
 
 use crate::error::{check_finite, check_len, Error, Result};
 use crate::mat3::map3;
-use crate::memory::{assume_written, unwritten};
+use crate::memory::{assume_written, unwritten, write_zeros};
 use crate::sh::{direction, num_sh_coeffs, sh_basis, sh_sum, sh_sum_adjoint, unclamped};
 use crate::Real;
 
@@ -137,7 +135,7 @@ pub fn shade_backward<T: Real>(
                 let (b, _) = sh_basis(inputs.degree, inputs.dir(i), false);
                 let v = unclamped(inputs.raw(i, &b), map3(|ch| v_rgb[3 * i + ch]));
                 sh_sum_adjoint(&b, v, &mut row[..3 * n]);
-                row[3 * n..].fill(MaybeUninit::new(T::zero()));
+                write_zeros(&mut row[3 * n..]);
                 if let Some(rest) = &rest {
                     let given = &rest.values[i * rest.width..(i + 1) * rest.width];
                     for (out, &g) in row[rest.start..rest.start + rest.width].iter_mut().zip(given) {

@@ -4,7 +4,6 @@
 //! image or at a list of pixels only (the covered ones, say), which skips the full-image
 //! output and, in the adjoint, the full-image output gradient.
 
-use std::mem::MaybeUninit;
 use std::ops::Range;
 
 use rayon::prelude::*;
@@ -12,7 +11,7 @@ use rayon::prelude::*;
 use super::runs::{merge_runs, TriangleRuns};
 use super::{check_faces, check_tri_id, TILE_ROWS};
 use crate::error::{check_finite, check_indices, check_len, Error, Result};
-use crate::memory::{assume_written, unwritten, zeroed};
+use crate::memory::{assume_written, unwritten, write_zeros, zeroed};
 use crate::Real;
 
 /// Gradients of [`interpolate_backward`]; a field is `Some` exactly when it was asked for.
@@ -265,7 +264,7 @@ impl<'a, T: Real> Inputs<'a, T> {
                     let idx = sites.pixel(first + i);
                     let tri = self.tri_id[idx];
                     if tri < 0 {
-                        px.fill(MaybeUninit::new(T::zero()));
+                        write_zeros(px);
                         continue;
                     }
                     let (b1, b2) = (self.bary[2 * idx], self.bary[2 * idx + 1]);

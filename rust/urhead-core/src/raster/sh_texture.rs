@@ -27,7 +27,6 @@
 //! non-finite coordinate reads zeros — colour 0.5 — and passes no UV gradient). Directions
 //! are constants and must be finite.
 
-use std::mem::MaybeUninit;
 use std::ops::Range;
 
 use rayon::prelude::*;
@@ -36,7 +35,7 @@ use super::taps::{bilinear_taps, prefetch_taps, Taps, TexShape, PREFETCH_DISTANC
 use super::texel::Texel;
 use super::texture::{blend, validate};
 use crate::error::{check_finite, check_len, Error, Result};
-use crate::memory::{assume_written, copy_short, unwritten, written_part, zeroed, Slot};
+use crate::memory::{assume_written, copy_short, unwritten, write_zeros, written_part, zeroed};
 use crate::parallel::optional_chunks;
 use crate::sh::{direction, num_sh_coeffs, sh_basis, sh_sum, sh_sum_adjoint, unclamped};
 use crate::Real;
@@ -226,7 +225,7 @@ pub fn sh_texture_forward<T: Real, S: Texel<T>>(
                 let rgb = sh_sum(&b, &row[..colour], T::c(0.5));
                 for ch in 0..3 {
                     // NaN-safe clamp, as the shading op: a NaN coefficient gives NaN.
-                    out[ch].set(if rgb[ch] < T::zero() { T::zero() } else { rgb[ch] });
+                    out[ch].write(if rgb[ch] < T::zero() { T::zero() } else { rgb[ch] });
                 }
                 if let Some(extra_out) = extra_out.as_deref_mut() {
                     copy_short(&mut extra_out[e * i..], &row[extra.start..], e);
@@ -242,12 +241,12 @@ pub fn sh_texture_forward<T: Real, S: Texel<T>>(
                         sh_sum(&b, &d_fy[..colour], T::zero()),
                     );
                     for ch in 0..3 {
-                        along_u[ch].set(su[ch] * du);
-                        along_v[ch].set(sv[ch] * dv);
+                        along_u[ch].write(su[ch] * du);
+                        along_v[ch].write(sv[ch] * dv);
                     }
                     for (j, k) in extra.clone().enumerate() {
-                        along_u[3 + j].set(d_fx[k] * du);
-                        along_v[3 + j].set(d_fy[k] * dv);
+                        along_u[3 + j].write(d_fx[k] * du);
+                        along_v[3 + j].write(d_fy[k] * dv);
                     }
                 }
             }
@@ -336,7 +335,7 @@ pub fn sh_texture_backward<T: Real>(
                     sh_sum_adjoint(&b, v_rgb, &mut row[..colour]);
                     // Zeros past the colour, then the extra channels (after the colour when
                     // there are any) over theirs: every channel of the row is written.
-                    row[colour..].fill(MaybeUninit::new(T::zero()));
+                    write_zeros(&mut row[colour..]);
                     copy_short(&mut row[extra.start..], v_extra, e);
                 }
                 if let (Some(v_uv), Some(slopes)) = (v_uv.as_deref_mut(), g.slopes) {

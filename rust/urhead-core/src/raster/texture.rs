@@ -19,9 +19,7 @@ use super::taps::{
     PREFETCH_DISTANCE, SAMPLE_CHUNK,
 };
 use crate::error::{check_finite, check_len, checked_size, Error, Result};
-use std::mem::MaybeUninit;
-
-use crate::memory::{assume_written, unwritten, written_part, zeroed, Slot};
+use crate::memory::{assume_written, unwritten, write_zeros, written_part, zeroed, Slot};
 use crate::Real;
 
 /// Texel indices are stored as u32.
@@ -111,7 +109,7 @@ pub fn texture_forward<T: Real>(
                         t.texel.map(|k| &tex[k as usize * c..(k as usize + 1) * c]),
                         t.weight,
                     ),
-                    None => o.fill(MaybeUninit::new(T::zero())),
+                    None => write_zeros(o),
                 }
             }
             // SAFETY: every row of the chunk was written just above, blended or zeros.
