@@ -307,6 +307,7 @@ pub(crate) fn scan_tiles<T: Real>(setup: &Setup<T>, vp: &Viewport, far: T) -> Re
                     continue;
                 };
                 let tri = cov.tri as i32;
+                let depth_floor = planes.depth_floor();
                 let [e0, e1, e2] = cov.edges;
                 let (x_first, x_last) = (cov.x0 as usize, cov.x1 as usize);
                 for py in (cov.y0 as usize).max(row0)..=(cov.y1 as usize).min(row_end - 1) {
@@ -324,11 +325,14 @@ pub(crate) fn scan_tiles<T: Real>(setup: &Setup<T>, vp: &Viewport, far: T) -> Re
                     let (mut ex, ey) = planes.offset(x_first, py);
                     let row_terms = planes.row_terms(ey);
                     for px in x_first..=x_last {
-                        if (e[0] | e[1] | e[2]) >= 0 {
+                        let i = row + px;
+                        // A pixel already nearer than the whole triangle keeps its
+                        // triangle: the barycentrics are not worth computing (most hidden
+                        // faces of a closed head, behind the ones in front).
+                        if (e[0] | e[1] | e[2]) >= 0 && !(ds[i] < depth_floor) {
                             if let Some(b) = barycentrics(planes.raw_on_row(ex, &row_terms)) {
                                 let l = b.lambda;
                                 let z = planes.depth_at(&l);
-                                let i = row + px;
                                 if z <= far && (z < ds[i] || (z == ds[i] && tri < ids[i])) {
                                     ids[i] = tri;
                                     ds[i] = z;
