@@ -329,7 +329,7 @@ pub(crate) fn scan_tiles<T: Real>(setup: &Setup<T>, vp: &Viewport, far: T) -> Re
                         // A pixel already nearer than the whole triangle keeps its
                         // triangle: the barycentrics are not worth computing (most hidden
                         // faces of a closed head, behind the ones in front).
-                        if (e[0] | e[1] | e[2]) >= 0 && !(ds[i] < depth_floor) {
+                        if (e[0] | e[1] | e[2]) >= 0 && ds[i] >= depth_floor {
                             if let Some(b) = barycentrics(planes.raw_on_row(ex, &row_terms)) {
                                 let l = b.lambda;
                                 let z = planes.depth_at(&l);

@@ -112,14 +112,14 @@ impl<T: Real> TrianglePlanes<T> {
     /// A depth no pixel of the triangle can lie in front of: [`depth_at`](Self::depth_at)
     /// is a convex combination of the vertex depths up to rounding, the weights summing to
     /// 1 within a few ulps and each of its 6 operations rounding once, which moves it by
-    /// less than 13·ε·max|d| below the nearest vertex; the margin is twice that. Not finite
-    /// when a depth overflows `T`, so comparisons with it fail.
+    /// less than 13·ε·max|d| below the nearest vertex; the margin is twice that. −∞ when a
+    /// depth overflows `T` (never NaN), which skips nothing.
     #[inline(always)]
     pub fn depth_floor(&self) -> T {
         let d = &self.depth;
         let nearest = d[0].min(d[1]).min(d[2]);
         let largest = d[0].abs().max(d[1].abs()).max(d[2].abs());
-        nearest - T::c(32.0) * T::epsilon() * largest
+        (nearest - T::c(32.0) * T::epsilon() * largest).max(T::neg_infinity())
     }
 
     /// Unnormalised barycentric weights at a pixel centre offset.
@@ -590,7 +590,7 @@ mod tests {
         fn check<T: Real>() {
             let mut rng = crate::testing::Rng::new(5);
             let depth_sets: Vec<[f64; 3]> = vec![
-                [1000.0, 1000.000_1, 1000.000_2],
+                [1_000.0, 1_000.000_1, 1_000.000_2],
                 [0.75, 0.75, 0.75],
                 [0.010_01, 99.9, 7.3],
                 [-3.0, 0.5, 2.0],
@@ -639,6 +639,14 @@ mod tests {
                 checked += 1;
             }
             assert!(checked > 3000, "{checked}");
+            // Depths that overflow `T`: a floor below everything, never NaN.
+            let huge = TrianglePlanes::<T> {
+                coef: [[T::zero(); 3]; 3],
+                depth: [T::c(1e300); 3],
+                origin: [0, 0],
+            };
+            let floor = huge.depth_floor();
+            assert!(floor == T::neg_infinity() || floor.is_finite(), "{floor:?}");
         }
         check::<f32>();
         check::<f64>();
