@@ -289,6 +289,9 @@ fn setup_triangle<T: Real>(
     }
     // A copy, made only here, so the fast path never puts `verts` in memory.
     let poly = clip(&[verts[0], verts[1], verts[2]], vp);
+    if poly.len < 3 {
+        return None;
+    }
     let mut fixed = [[0i64; 2]; MAX_POLY];
     for (f, h) in fixed.iter_mut().zip(&poly.verts[..poly.len]) {
         *f = snap(h, vp);
@@ -296,7 +299,8 @@ fn setup_triangle<T: Real>(
     setup_polygon(tri, verts, &fixed[..poly.len], vp, coverage)
 }
 
-/// The planes of triangle `verts` and the fan of its snapped (clipped) polygon `fixed`.
+/// The planes of triangle `verts` and the fan of its snapped (clipped) polygon `fixed`
+/// (3 corners or more).
 #[inline(always)]
 fn setup_polygon<T: Real>(
     tri: u32,
@@ -305,9 +309,6 @@ fn setup_polygon<T: Real>(
     vp: &Viewport,
     coverage: &mut Vec<CoverageTri>,
 ) -> Option<TrianglePlanes<T>> {
-    if fixed.len() < 3 {
-        return None;
-    }
     let (x0, _, y0, _) = pixel_bbox(fixed, vp)?;
     let origin = [x0 as i32, y0 as i32];
     let frame = plane_frame(verts, origin)?;
