@@ -10,7 +10,7 @@ import torch
 
 import urhead.model.avatar
 from test_model import camera, make_avatar
-from urhead.errors import DTypeError, ShapeError
+from urhead.errors import DTypeError, IndexRangeError, InvalidArgumentError, ShapeError
 from urhead.head import procedural_head
 from urhead.ops import TextureGather, _reference, rotate_normalize
 
@@ -177,6 +177,48 @@ def test_bad_input_is_a_named_error(stability):
     rotate_normalize(empty_r, torch.zeros(0, 3)).sum().backward()
     assert empty_r.grad.shape == (0, 3, 3)
     stability.checked(26, "rotate_normalize: wrong shapes and dtypes named, empty input", len(bad))
+
+
+@pytest.mark.parametrize("transpose", [False, True])
+def test_rows_pick_from_a_table_as_indexing_does(transpose):
+    """``rows`` reads ``vectors[rows]`` in place: against the float64 reference that indexes
+    first (values, rotation gradient), bit for bit against the kernel on the indexed copy in
+    float32, and the table gets no gradient."""
+    rotations, _ = _case(500, seed=4)
+    table = torch.randn(2000, 3, generator=torch.Generator().manual_seed(5), dtype=F64)
+    rows = torch.randint(0, 2000, (500,), generator=torch.Generator().manual_seed(6)).sort()[0]
+    rows[1] = rows[0]  # repeats allowed
+    weights = torch.randn(500, 3, generator=torch.Generator().manual_seed(7), dtype=F64)
+    results = []
+    for fn in (rotate_normalize, _reference.rotate_normalize):
+        r = rotations.clone().requires_grad_(True)
+        out = fn(r, table, transpose, rows)
+        (out * weights).sum().backward()
+        results.append((out.detach(), r.grad))
+    (ours, g_ours), (ref, g_ref) = results
+    assert _rel(ours, ref) < 1e-14 and _rel(g_ours, g_ref) < 1e-13
+    r32, t32 = rotations.float(), table.float()
+    picked = rotate_normalize(r32, t32, transpose, rows)
+    assert torch.equal(picked, rotate_normalize(r32, t32[rows].contiguous(), transpose))
+
+
+def test_bad_rows_are_named_errors():
+    rotations, _ = _case(6, dtype=torch.float32)
+    table = torch.randn(10, 3)
+    rows = torch.tensor([0, 3, 3, 9, 2, 5])
+    rotate_normalize(rotations, table, rows=rows)
+    bad = [
+        (IndexRangeError, "rows", (table, rows.clone().index_fill_(0, torch.tensor([3]), 10))),
+        (IndexRangeError, "rows", (table, rows.clone().index_fill_(0, torch.tensor([2]), -1))),
+        (ShapeError, "rotations", (table, rows[:5])),
+        (ShapeError, "rows", (table, rows[None])),
+        (DTypeError, "rows", (table, rows.int())),
+        (ShapeError, "vectors", (table[:, :2], rows)),
+        (InvalidArgumentError, "no gradient", (table.clone().requires_grad_(True), rows)),
+    ]
+    for error, name, (vectors, picked) in bad:
+        with pytest.raises(error, match=name):
+            rotate_normalize(rotations, vectors, rows=picked)
 
 
 # The avatar ------------------------------------------------------------------------------

@@ -689,9 +689,12 @@ def normalize_clamped(v: torch.Tensor) -> torch.Tensor:
     return v / v.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 
-def rotate_normalize(rotations, vectors, transpose=False):
+def rotate_normalize(rotations, vectors, transpose=False, rows=None):
     """Reference of :func:`urhead.ops.rotate_normalize` — the avatar's ``bmm`` before the
-    kernel. Its ``|m|`` overflows where ``m²`` does (float32 beyond ~1.8e19, giving zero)."""
+    kernel (``rows`` indexing the table first). Its ``|m|`` overflows where ``m²`` does
+    (float32 beyond ~1.8e19, giving zero)."""
+    if rows is not None:
+        vectors = vectors[rows]
     matrices = rotations.transpose(1, 2) if transpose else rotations
     return normalize_clamped(torch.bmm(matrices, vectors[:, :, None])[..., 0])
 

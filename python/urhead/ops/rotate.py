@@ -7,7 +7,7 @@ from __future__ import annotations
 import torch
 
 from urhead._threads import num_threads
-from urhead.errors import DTypeError, ShapeError
+from urhead.errors import DTypeError, InvalidArgumentError, ShapeError
 from urhead.ops._bridge import (
     check_shape,
     check_tensor,
@@ -21,16 +21,17 @@ from urhead.ops._bridge import (
 
 class _RotateNormalize(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, rotations, vectors, transpose):
+    def forward(ctx, rotations, vectors, transpose, rows):
         dtype = rotations.dtype
         out = native("rotate_normalize_forward")(
             to_numpy("rotations", rotations, dtype),
             to_numpy("vectors", vectors, dtype),
             transpose,
+            None if rows is None else to_numpy("rows", rows, torch.int64),
             num_threads(),
         )
         ctx.set_materialize_grads(False)
-        ctx.save_for_backward(rotations, vectors)
+        ctx.save_for_backward(rotations, vectors, rows)
         ctx.transpose = transpose
         return torch.from_numpy(out)
 
@@ -38,21 +39,25 @@ class _RotateNormalize(torch.autograd.Function):
     def backward(ctx, v_out):
         needs = tuple(ctx.needs_input_grad[:2])
         if v_out is None or not any(needs):
-            return None, None, None
-        rotations, vectors = ctx.saved_tensors
+            return None, None, None, None
+        rotations, vectors, rows = ctx.saved_tensors
         v_rotations, v_vectors = native("rotate_normalize_backward")(
             rotations.detach().numpy(),
             vectors.detach().numpy(),
             ctx.transpose,
+            None if rows is None else rows.numpy(),
             grad_to_numpy("v_out", v_out, rotations.dtype),
             needs,
             num_threads(),
         )
-        return from_numpy(v_rotations), from_numpy(v_vectors), None
+        return from_numpy(v_rotations), from_numpy(v_vectors), None, None
 
 
 def rotate_normalize(
-    rotations: torch.Tensor, vectors: torch.Tensor, transpose: bool = False
+    rotations: torch.Tensor,
+    vectors: torch.Tensor,
+    transpose: bool = False,
+    rows: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Each matrix applied to its vector, normalised: ``m / max(|m|, 1e-12)`` with
     ``m = R·v`` (``Rᵀ·v`` with ``transpose``), the same as
@@ -63,6 +68,11 @@ def rotate_normalize(
             matrix is valid (the result is normalised after the product).
         vectors: (N, 3) vectors of the same dtype, any length.
         transpose: apply ``Rᵀ`` instead of ``R`` (a world direction into a rest frame).
+        rows: optional (N,) int64 indices into ``vectors``, then an (M, 3) table: matrix
+            ``i`` takes ``vectors[rows[i]]``, read in place — the values of
+            ``vectors[rows]`` bit for bit, without the (N, 3) copy (a mesh's covered pixels
+            pick their camera rays from the whole image's table). The table gets no
+            gradient, so it must not require one.
 
     Returns:
         (N, 3) unit vectors, or ``m / 1e-12`` below the floor (a zero product stays
@@ -86,5 +96,19 @@ def rotate_normalize(
     check_tensor("vectors", vectors)
     if vectors.dtype != dtype:
         raise DTypeError(f"vectors must have the dtype of rotations ({dtype}), got {vectors.dtype}")
-    check_shape("vectors", vectors, 2, 3, "(N, 3)")
-    return _RotateNormalize.apply(rotations.contiguous(), vectors.contiguous(), bool(transpose))
+    if rows is None:
+        check_shape("vectors", vectors, 2, 3, "(N, 3)")
+    else:
+        check_shape("vectors", vectors, 2, 3, "(M, 3)")
+        check_tensor("rows", rows)
+        if rows.dtype != torch.int64:
+            raise DTypeError(f"rows must be int64, got {rows.dtype}")
+        check_shape("rows", rows, 1, None, "(N,) int64")
+        if vectors.requires_grad:
+            raise InvalidArgumentError(
+                "vectors picked by rows get no gradient; pass a table that does not require one"
+            )
+        rows = rows.contiguous()
+    return _RotateNormalize.apply(
+        rotations.contiguous(), vectors.contiguous(), bool(transpose), rows
+    )

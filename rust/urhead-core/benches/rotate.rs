@@ -22,6 +22,7 @@ fn bench_rotate(c: &mut Criterion) {
         rotations: &rotations,
         vectors: &vectors,
         transpose: false,
+        rows: None,
     };
     let needs = RotateNeeds {
         rotations: true,

@@ -13,7 +13,7 @@
 
 use rayon::prelude::*;
 
-use crate::error::{check_len, Result};
+use crate::error::{check_indices, check_len, Error, Result};
 use crate::mat3::{dot, matvec, matvec_t, outer, M3, V3};
 use crate::memory::{assume_written, copy_short, unwritten};
 use crate::parallel::optional_chunks;
@@ -30,10 +30,15 @@ pub const NORM_FLOOR: f64 = 1e-12;
 pub struct RotateInputs<'a, T> {
     /// (N, 3, 3) matrices; rotations in practice, but any matrix is valid.
     pub rotations: &'a [T],
-    /// (N, 3) vectors, any length (zero and non-finite allowed).
+    /// (N, 3) vectors, any length (zero and non-finite allowed); with `rows`, an (M, 3)
+    /// table the rows pick from.
     pub vectors: &'a [T],
     /// Apply `Rᵀ` instead of `R`.
     pub transpose: bool,
+    /// (N,) indices into `vectors`: row i uses `vectors[rows[i]]`, gathered as it is read
+    /// (a mesh's covered pixels pick their camera rays from the whole image's table with no
+    /// (N, 3) copy). The gathered vectors get no gradient.
+    pub rows: Option<&'a [i64]>,
 }
 
 /// Which input gradients [`rotate_normalize_backward`] computes.
@@ -53,10 +58,20 @@ pub struct RotateGrads<T> {
 }
 
 impl<T: Real> RotateInputs<'_, T> {
-    /// Checks the lengths; returns N.
+    /// Checks the lengths and the rows; returns N.
     fn validate(&self) -> Result<usize> {
-        let n = self.vectors.len() / 3;
-        check_len("vectors", self.vectors, n * 3, "(N, 3)")?;
+        let table = self.vectors.len() / 3;
+        let n = match self.rows {
+            None => {
+                check_len("vectors", self.vectors, table * 3, "(N, 3)")?;
+                table
+            }
+            Some(rows) => {
+                check_len("vectors", self.vectors, table * 3, "(M, 3)")?;
+                check_indices("rows", rows, 0, table as i64)?;
+                rows.len()
+            }
+        };
         check_len(
             "rotations",
             self.rotations,
@@ -74,10 +89,11 @@ impl<T: Real> RotateInputs<'_, T> {
 
     #[inline(always)]
     fn vector(&self, i: usize) -> V3<T> {
+        let k = self.rows.map_or(i, |rows| rows[i] as usize);
         [
-            self.vectors[3 * i],
-            self.vectors[3 * i + 1],
-            self.vectors[3 * i + 2],
+            self.vectors[3 * k],
+            self.vectors[3 * k + 1],
+            self.vectors[3 * k + 2],
         ]
     }
 
@@ -156,6 +172,12 @@ pub fn rotate_normalize_backward<T: Real>(
 ) -> Result<RotateGrads<T>> {
     let n = inputs.validate()?;
     check_len("v_out", v_out, n * 3, &format!("(N, 3) with N = {n}"))?;
+    if needs.vectors && inputs.rows.is_some() {
+        return Err(Error::Invalid {
+            arg: "needs",
+            reason: "gathered vectors (rows given) get no gradient".into(),
+        });
+    }
     let size = |needed: bool, width: usize| if needed { n * width } else { 0 };
     // Written whole, row by row, below (when asked for; empty otherwise).
     let mut v_rotations = unwritten("rotate_normalize rotation gradient", size(needs.rotations, 9))?;
@@ -215,7 +237,6 @@ pub fn rotate_normalize_backward<T: Real>(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::error::Error;
     use crate::testing::{on_threads, Rng};
 
     struct Case<T> {
@@ -247,6 +268,7 @@ mod tests {
                 rotations: &self.rotations,
                 vectors: &self.vectors,
                 transpose,
+                rows: None,
             }
         }
     }
@@ -368,6 +390,7 @@ mod tests {
             rotations: &eye,
             vectors: &vectors,
             transpose: false,
+            rows: None,
         };
         let out = rotate_normalize_forward(&inputs).unwrap();
         assert_eq!(&out[0..3], &[0.0; 3]);
@@ -400,6 +423,81 @@ mod tests {
             .v_vectors
             .unwrap();
         assert_eq!(&dv[0..3], &[1.0, -2.0, 3.0].map(|x: f32| x / 1e-12f32));
+    }
+
+    #[test]
+    fn gathered_rows_are_the_gathered_vectors_bit_for_bit() {
+        let n = 5000; // several chunks
+        let case = Case::<f32>::new(n, 9);
+        let mut rng = Rng::new(10);
+        // A table larger than N, picked in increasing order with gaps and repeats, as a
+        // mesh's covered pixels pick their rays.
+        let table: Vec<f32> = rng.vec(3 * 3 * n, -1.0, 1.0);
+        let mut rows: Vec<i64> = (0..n).map(|_| rng.uniform(0.0, (3 * n) as f64) as i64).collect();
+        rows.sort_unstable();
+        rows[1] = rows[0];
+        let picked: Vec<f32> = rows
+            .iter()
+            .flat_map(|&r| table[3 * r as usize..3 * r as usize + 3].to_vec())
+            .collect();
+        let w: Vec<f32> = rng.vec(n * 3, -1.0, 1.0);
+        let only_rotations = RotateNeeds {
+            rotations: true,
+            vectors: false,
+        };
+        for transpose in [false, true] {
+            let copied = RotateInputs {
+                vectors: &picked,
+                ..case.inputs(transpose)
+            };
+            let gathered = RotateInputs {
+                vectors: &table,
+                rows: Some(&rows),
+                ..case.inputs(transpose)
+            };
+            let bits = |x: &[f32]| x.iter().map(|y| y.to_bits()).collect::<Vec<_>>();
+            assert_eq!(
+                bits(&rotate_normalize_forward(&copied).unwrap()),
+                bits(&rotate_normalize_forward(&gathered).unwrap())
+            );
+            let g_copied = rotate_normalize_backward(&copied, &w, &only_rotations).unwrap();
+            let g_gathered = rotate_normalize_backward(&gathered, &w, &only_rotations).unwrap();
+            assert_eq!(
+                bits(g_copied.v_rotations.as_ref().unwrap()),
+                bits(g_gathered.v_rotations.as_ref().unwrap())
+            );
+            assert!(g_gathered.v_vectors.is_none());
+            // The gathered vectors get no gradient: asking for one is an error.
+            let err = rotate_normalize_backward(&gathered, &w, &BOTH).unwrap_err();
+            assert!(matches!(err, Error::Invalid { arg: "needs", .. }), "{err}");
+        }
+        // A row outside the table is named, as is a row count unlike the rotations'.
+        let mut bad = rows.clone();
+        bad[7] = 3 * n as i64;
+        let outside = RotateInputs {
+            vectors: &table,
+            rows: Some(&bad),
+            ..case.inputs(false)
+        };
+        let err = rotate_normalize_forward(&outside).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                Error::IndexOutOfRange {
+                    arg: "rows",
+                    index: 7,
+                    ..
+                }
+            ),
+            "{err}"
+        );
+        let short = RotateInputs {
+            vectors: &table,
+            rows: Some(&rows[1..]),
+            ..case.inputs(false)
+        };
+        let err = rotate_normalize_forward(&short).unwrap_err();
+        assert!(matches!(err, Error::Shape { arg: "rotations", .. }), "{err}");
     }
 
     #[test]
@@ -456,6 +554,7 @@ mod tests {
             rotations: &[],
             vectors: &[],
             transpose: true,
+            rows: None,
         };
         assert!(rotate_normalize_forward(&empty).unwrap().is_empty());
         let g = rotate_normalize_backward(&empty, &[], &BOTH).unwrap();
