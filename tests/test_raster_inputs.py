@@ -101,7 +101,14 @@ def test_case26_wrong_shapes_and_dtypes(mesh, stability):
         ops.antialias(
             torch.zeros(cam.height, cam.width, 3), raster, verts, faces, cam, topology=faces[:3]
         )
-    stability.checked(26, "mesh: wrong shapes and dtypes → ShapeError / DTypeError naming them", 11)
+    # Off the CPU, or not strided (sparse): named before any work.
+    with pytest.raises(DTypeError, match="verts must be on the CPU, got device meta"):
+        ops.rasterize(verts.to("meta"), faces, cam)
+    with pytest.raises(DTypeError, match="uv must be a dense .*sparse_coo"):
+        ops.texture(torch.zeros(4, 4, 1), torch.zeros(3, 2).to_sparse())
+    with pytest.raises(DTypeError, match="uv must be a dense .*sparse_csr"):
+        ops.texture(torch.zeros(4, 4, 1), torch.zeros(3, 2).to_sparse_csr())
+    stability.checked(26, "mesh: wrong shapes, dtypes, devices and layouts named", 14)
 
 
 def test_case26_indices_out_of_range(mesh, stability):
