@@ -104,9 +104,9 @@ def test_case26_wrong_shapes_and_dtypes(mesh, stability):
     # Off the CPU, or not strided (sparse): named before any work.
     with pytest.raises(DTypeError, match="verts must be on the CPU, got device meta"):
         ops.rasterize(verts.to("meta"), faces, cam)
-    with pytest.raises(DTypeError, match="uv must be a dense .*sparse_coo"):
+    with pytest.raises(DTypeError, match=r"uv must be a dense .*sparse_coo"):
         ops.texture(torch.zeros(4, 4, 1), torch.zeros(3, 2).to_sparse())
-    with pytest.raises(DTypeError, match="uv must be a dense .*sparse_csr"):
+    with pytest.raises(DTypeError, match=r"uv must be a dense .*sparse_csr"):
         ops.texture(torch.zeros(4, 4, 1), torch.zeros(3, 2).to_sparse_csr())
     stability.checked(26, "mesh: wrong shapes, dtypes, devices and layouts named", 14)
 
