@@ -204,15 +204,16 @@ pub fn sh_texture_forward<T: Real, S: Texel<T>>(
                     prefetch_taps(ahead, inputs.tex, c);
                 }
                 match &taps[i] {
+                    Some(t) if slope_out.is_none() => {
+                        S::blend_used(&mut row, inputs.tex, t.texel, c, used, t.weight, &mut widened);
+                    }
                     Some(t) => {
                         let rows = S::rows(inputs.tex, t.texel, c, used, &mut widened);
                         blend(&mut row[..colour], rows, t.weight);
                         blend(&mut row[extra.clone()], rows.map(|r| &r[extra.start..]), t.weight);
-                        if slope_out.is_some() {
-                            texel_slopes(&mut d_fx[..colour], &mut d_fy[..colour], rows, t);
-                            let shifted = rows.map(|r| &r[extra.start..]);
-                            texel_slopes(&mut d_fx[extra.clone()], &mut d_fy[extra.clone()], shifted, t);
-                        }
+                        texel_slopes(&mut d_fx[..colour], &mut d_fy[..colour], rows, t);
+                        let shifted = rows.map(|r| &r[extra.start..]);
+                        texel_slopes(&mut d_fx[extra.clone()], &mut d_fy[extra.clone()], shifted, t);
                     }
                     None => {
                         for buf in [&mut row, &mut d_fx, &mut d_fy] {

@@ -13,6 +13,7 @@ use std::ops::Range;
 use half::f16;
 use half::slice::HalfFloatSliceExt;
 
+use super::texture::blend;
 use crate::error::{check_finite, Error, Result};
 use crate::Real;
 
@@ -27,6 +28,25 @@ pub trait Texel<T: Real>: Copy + Send + Sync + 'static {
         used: [&Range<usize>; 2],
         scratch: &'a mut [T],
     ) -> [&'a [T]; 4];
+
+    /// The bilinear blend of the rows `texel` with weights `w` on the channels in `used`,
+    /// written into `out (c)` there: [`blend`] of [`Texel::rows`], bit for bit, where a
+    /// lookup needs no rows besides (no slopes).
+    #[inline(always)]
+    fn blend_used(
+        out: &mut [T],
+        tex: &[Self],
+        texel: [u32; 4],
+        c: usize,
+        used: [&Range<usize>; 2],
+        w: [T; 4],
+        scratch: &mut [T],
+    ) {
+        let rows = Self::rows(tex, texel, c, used, scratch);
+        for range in used {
+            blend(&mut out[range.clone()], rows.map(|r| &r[range.clone()]), w);
+        }
+    }
 
     /// An error naming the first non-finite value of `tex`, if any (the lazy check a
     /// lookup makes when a value came out non-finite).
@@ -70,6 +90,24 @@ impl Texel<f32> for f16 {
         std::array::from_fn(|i| &scratch[i * c..(i + 1) * c])
     }
 
+    /// Widened in registers as they are blended (eight channels at a time with F16C), with
+    /// no scratch rows written and read back: the same operations on the same values.
+    #[inline(always)]
+    fn blend_used(
+        out: &mut [f32],
+        tex: &[f16],
+        texel: [u32; 4],
+        c: usize,
+        used: [&Range<usize>; 2],
+        w: [f32; 4],
+        _scratch: &mut [f32],
+    ) {
+        for range in used {
+            let rows = texel.map(|k| &tex[k as usize * c + range.start..k as usize * c + range.end]);
+            blend_float16(&mut out[range.clone()], rows, w);
+        }
+    }
+
     fn check_finite(arg: &'static str, tex: &[f16]) -> Result<()> {
         match tex.iter().position(|x| !x.is_finite()) {
             None => Ok(()),
@@ -79,6 +117,44 @@ impl Texel<f32> for f16 {
                 value: tex[index].to_f64(),
             }),
         }
+    }
+}
+
+/// [`blend`] of float16 rows widened to f32: `w0·a + w1·b + w2·c + w3·d`, left to right,
+/// each product and sum rounded to f32 as there (no fused multiply-add).
+#[inline(always)]
+fn blend_float16(out: &mut [f32], rows: [&[f16]; 4], w: [f32; 4]) {
+    let n = out.len();
+    let rows = rows.map(|r| &r[..n]); // every row covers the output
+    let mut done = 0;
+    #[cfg(all(target_arch = "x86_64", target_feature = "f16c", target_feature = "avx"))]
+    {
+        use std::arch::x86_64::{
+            __m128i, _mm256_add_ps, _mm256_cvtph_ps, _mm256_mul_ps, _mm256_set1_ps, _mm256_storeu_ps,
+            _mm_loadu_si128,
+        };
+        // SAFETY: F16C and AVX are enabled at compile time (cfg above); every load reads 8
+        // halves of a row and every store 8 floats of `out` at `done + 8 ≤ n`, in bounds.
+        unsafe {
+            let weights = w.map(|x| _mm256_set1_ps(x));
+            while done + 8 <= n {
+                let r =
+                    rows.map(|r| _mm256_cvtph_ps(_mm_loadu_si128(r.as_ptr().add(done) as *const __m128i)));
+                let sum = _mm256_add_ps(
+                    _mm256_add_ps(
+                        _mm256_add_ps(_mm256_mul_ps(weights[0], r[0]), _mm256_mul_ps(weights[1], r[1])),
+                        _mm256_mul_ps(weights[2], r[2]),
+                    ),
+                    _mm256_mul_ps(weights[3], r[3]),
+                );
+                _mm256_storeu_ps(out.as_mut_ptr().add(done), sum);
+                done += 8;
+            }
+        }
+    }
+    for i in done..n {
+        let [a, b, c, d] = rows.map(|r| r[i].to_f32());
+        out[i] = w[0] * a + w[1] * b + w[2] * c + w[3] * d;
     }
 }
 
@@ -100,6 +176,43 @@ mod tests {
                 assert_eq!(row[ch].to_bits(), tex[k * c + ch].to_f32().to_bits());
             }
             assert!(row[2].is_nan(), "an unused channel is not read");
+        }
+    }
+
+    #[test]
+    fn float16_blend_is_the_blend_of_the_widened_rows_bit_for_bit() {
+        let c = 61; // eight-channel groups and a tail of 5
+        let mut rng = crate::testing::Rng::new(3);
+        let mut tex: Vec<f16> = (0..6 * c)
+            .map(|_| f16::from_f64(rng.uniform(-4.0, 4.0)))
+            .collect();
+        // Subnormal, zero, largest and non-finite halves pass through as data.
+        tex[2] = f16::from_f32(6.0e-8);
+        tex[c + 9] = f16::NEG_ZERO;
+        tex[2 * c + 17] = f16::MAX;
+        tex[3 * c + 60] = f16::NAN;
+        tex[4 * c + 33] = f16::INFINITY;
+        let texel = [4, 1, 3, 2];
+        let used = [&(0..48), &(50..61)];
+        for w in [
+            [0.25f32, 0.25, 0.25, 0.25],
+            [0.7, 0.1, 0.15, 0.05],
+            [1.0, 0.0, 0.0, 0.0],
+        ] {
+            let mut widened = vec![0f32; 4 * c];
+            let rows = <f16 as Texel<f32>>::rows(&tex, texel, c, used, &mut widened);
+            let mut want = vec![f32::NAN; c];
+            for range in used {
+                blend(&mut want[range.clone()], rows.map(|r| &r[range.clone()]), w);
+            }
+            let mut got = vec![f32::NAN; c];
+            <f16 as Texel<f32>>::blend_used(&mut got, &tex, texel, c, used, w, &mut widened);
+            let bits = |x: &[f32]| x.iter().map(|y| y.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&got), bits(&want), "weights {w:?}");
+            assert!(
+                got[48..50].iter().all(|x| x.is_nan()),
+                "unused channels are not written"
+            );
         }
     }
 
