@@ -96,10 +96,8 @@ def rotate_normalize(
     check_tensor("vectors", vectors)
     if vectors.dtype != dtype:
         raise DTypeError(f"vectors must have the dtype of rotations ({dtype}), got {vectors.dtype}")
-    if rows is None:
-        check_shape("vectors", vectors, 2, 3, "(N, 3)")
-    else:
-        check_shape("vectors", vectors, 2, 3, "(M, 3)")
+    check_shape("vectors", vectors, 2, 3, "(N, 3)" if rows is None else "(M, 3)")
+    if rows is not None:
         check_tensor("rows", rows)
         if rows.dtype != torch.int64:
             raise DTypeError(f"rows must be int64, got {rows.dtype}")

@@ -61,13 +61,11 @@ impl<T: Real> RotateInputs<'_, T> {
     /// Checks the lengths and the rows; returns N.
     fn validate(&self) -> Result<usize> {
         let table = self.vectors.len() / 3;
+        let layout = if self.rows.is_some() { "(M, 3)" } else { "(N, 3)" };
+        check_len("vectors", self.vectors, table * 3, layout)?;
         let n = match self.rows {
-            None => {
-                check_len("vectors", self.vectors, table * 3, "(N, 3)")?;
-                table
-            }
+            None => table,
             Some(rows) => {
-                check_len("vectors", self.vectors, table * 3, "(M, 3)")?;
                 check_indices("rows", rows, 0, table as i64)?;
                 rows.len()
             }
