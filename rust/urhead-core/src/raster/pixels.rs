@@ -26,29 +26,37 @@ const CHUNK: usize = 8192;
 /// `(P,)` flat indices `y·W + x` of the pixels whose `tri_id` is not −1 (any value ≥ 0
 /// counts as covered), increasing.
 pub fn covered_pixels(tri_id: &[i32]) -> Result<Vec<i64>> {
-    let per_chunk: Vec<Vec<i64>> = tri_id
+    // Two parallel passes: each chunk's count (a branch-free sum that vectorises), then
+    // each chunk's indices straight into its own slice of the exactly sized list — no
+    // per-chunk vectors growing, and no serial concatenation of them.
+    let counts: Vec<usize> = tri_id
         .par_chunks(CHUNK)
+        .map(|ids| ids.iter().map(|&id| usize::from(id >= 0)).sum())
+        .collect();
+    let mut pixels = unwritten("covered pixels (P,)", counts.iter().sum())?;
+    let mut slices = Vec::with_capacity(counts.len());
+    let mut rest = &mut pixels[..];
+    for &count in &counts {
+        let (head, tail) = rest.split_at_mut(count);
+        slices.push(head);
+        rest = tail;
+    }
+    slices
+        .into_par_iter()
+        .zip(tri_id.par_chunks(CHUNK))
         .enumerate()
-        .map(|(chunk, ids)| {
-            let first = (chunk * CHUNK) as i64;
-            (first..)
+        .for_each(|(chunk, (out, ids))| {
+            let covered = ((chunk * CHUNK) as i64..)
                 .zip(ids)
                 .filter(|&(_, &id)| id >= 0)
-                .map(|(p, _)| p)
-                .collect()
-        })
-        .collect();
-    let total = per_chunk.iter().map(Vec::len).sum();
-    let mut pixels = Vec::new();
-    pixels.try_reserve_exact(total).map_err(|_| Error::OutOfMemory {
-        what: "covered pixels (P,)",
-        elements: total,
-        bytes: (total as u128) * 8,
-    })?;
-    for chunk in per_chunk {
-        pixels.extend_from_slice(&chunk);
-    }
-    Ok(pixels)
+                .map(|(p, _)| p);
+            for (slot, p) in out.iter_mut().zip(covered) {
+                slot.write(p);
+            }
+        });
+    // SAFETY: slice k holds exactly chunk k's count of entries, and chunk k's pass wrote
+    // one per covered pixel of that chunk: every entry was written.
+    Ok(unsafe { assume_written(pixels) })
 }
 
 /// What [`scatter_pixels_forward`] and its adjoint read.
@@ -237,6 +245,19 @@ mod tests {
         assert_eq!(covered_pixels(&tri_id).unwrap(), expected);
         assert!(covered_pixels(&[]).unwrap().is_empty());
         assert!(covered_pixels(&[-1; 10]).unwrap().is_empty());
+        // Chunks wholly covered and wholly empty between mixed ones: each chunk's slice of
+        // the list has exactly its own count.
+        let blocks: Vec<i32> = (0..4 * CHUNK + 5)
+            .map(|i| match i / CHUNK {
+                1 => 7,
+                2 => -1,
+                _ => (i % 3) as i32 - 1,
+            })
+            .collect();
+        let expected: Vec<i64> = (0..blocks.len() as i64)
+            .filter(|&i| blocks[i as usize] >= 0)
+            .collect();
+        assert_eq!(covered_pixels(&blocks).unwrap(), expected);
     }
 
     #[test]
