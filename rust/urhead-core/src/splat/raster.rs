@@ -11,7 +11,9 @@ use super::lanes::{Lanes, WIDTH};
 use super::{Background, RasterInputs, SplatReal, ALPHA_MAX, ALPHA_MIN, TILE, T_STOP};
 use crate::error::Result;
 use crate::mat3::map3;
-use crate::memory::{filled, zeroed};
+use std::mem::MaybeUninit;
+
+use crate::memory::{assume_written, unwritten};
 use crate::Real;
 use num_traits::{One, Zero};
 
@@ -294,8 +296,10 @@ where
     let binning = Binning::new(inputs)?;
     let splats = splats(inputs);
     let (w, h, c) = (inputs.width, inputs.height, inputs.channels);
-    let mut image = zeroed("splat image (H, W, C)", w * h * c)?;
-    let mut transmittance = filled("splat transmittance (H, W)", w * h, L::Elem::one())?;
+    // Every pixel of both is written whole by its tile's `write_tile` below: neither is
+    // cleared first (a serial pass over 4 MB on the calling thread at 512²).
+    let mut image = unwritten("splat image (H, W, C)", w * h * c)?;
+    let mut transmittance = unwritten("splat transmittance (H, W)", w * h)?;
     let zero_bg = vec![L::Elem::zero(); c];
     let background = inputs.background.unwrap_or(Background::Uniform(&zero_bg));
     let evaluated_chunks: u64 = image
@@ -340,6 +344,9 @@ where
             },
         )
         .sum();
+    // SAFETY: the row bands partition both buffers, and each band's tiles wrote every
+    // pixel of it (`write_tile`: each pixel lies in exactly one tile's chunk).
+    let (image, transmittance) = unsafe { (assume_written(image), assume_written(transmittance)) };
     Ok(RasterForward {
         image,
         transmittance,
@@ -348,14 +355,14 @@ where
     })
 }
 
-/// Writes a finished tile's pixels: colour = accumulated + T·background.
+/// Writes a finished tile's pixels, each whole: colour = accumulated + T·background, and T.
 #[allow(clippy::too_many_arguments)]
 fn write_tile<L: Lanes>(
     st: &TileState<L>,
     acc: &[L],
     background: Background<'_, L::Elem>,
-    image_rows: &mut [L::Elem],
-    t_rows: &mut [L::Elem],
+    image_rows: &mut [MaybeUninit<L::Elem>],
+    t_rows: &mut [MaybeUninit<L::Elem>],
     w: usize,
     h: usize,
     c: usize,
@@ -366,34 +373,78 @@ fn write_tile<L: Lanes>(
             break;
         }
         for ch in 0..CHUNKS_PER_ROW {
-            let slot = row * CHUNKS_PER_ROW + ch;
-            let t = st.t[slot].to_array();
             let xc = st.x0 + ch * WIDTH;
             let lanes = WIDTH.min(w.saturating_sub(xc));
-            for i in 0..lanes {
-                t_rows[row * w + xc + i] = t[i];
+            if lanes == 0 {
+                continue; // a chunk past the image's right edge
             }
-            // The two kinds apart, so the uniform colour's loop stays as simple as it was.
+            let slot = row * CHUNKS_PER_ROW + ch;
+            let t = st.t[slot].to_array();
+            let first = row * w + xc;
+            for (dst, &ti) in t_rows[first..first + lanes].iter_mut().zip(&t) {
+                dst.write(ti);
+            }
+            // The chunk's pixels and (for an image) what lies behind them, sliced once, so
+            // the strided per-channel loops below run without bounds checks. With the
+            // buffers no longer cleared first: a 512² frame's splat −0.10 ms of 5.2
+            // (faster in 168 of 200); the write over the mesh image is ~0.6 ms of it.
+            let pixels = &mut image_rows[first * c..(first + lanes) * c];
             match background {
                 Background::Uniform(colour) => {
                     for (k, &behind) in colour.iter().enumerate() {
                         let col = acc[k * SLOTS + slot].to_array();
-                        for i in 0..lanes {
-                            image_rows[(row * w + xc + i) * c + k] = col[i] + t[i] * behind;
+                        let dst = pixels[k..].iter_mut().step_by(c);
+                        for ((d, &ci), &ti) in dst.zip(&col).zip(&t) {
+                            d.write(ci + ti * behind);
                         }
                     }
                 }
-                Background::Image { values, channels } if lanes > 0 => {
-                    let behind = &values[(y * w + xc) * channels..];
+                Background::Image { values, channels } => {
+                    let start = (y * w + xc) * channels;
+                    let behind = &values[start..start + lanes * channels];
                     for k in 0..c {
                         let col = acc[k * SLOTS + slot].to_array();
-                        for i in 0..lanes {
-                            image_rows[(row * w + xc + i) * c + k] = col[i] + t[i] * behind[i * channels + k];
+                        let dst = pixels[k..].iter_mut().step_by(c);
+                        let src = behind[k..].iter().step_by(channels);
+                        for (((d, &b), &ci), &ti) in dst.zip(src).zip(&col).zip(&t) {
+                            d.write(ci + ti * b);
                         }
                     }
                 }
-                Background::Image { .. } => {} // a chunk past the image's right edge
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::splat::project_forward;
+    use crate::splat::synthetic::SyntheticSplat;
+
+    /// Every pixel is written whole by its tile. At a size that is not a multiple of the
+    /// tile, a render over a uniform colour and one over an image of that colour (4
+    /// channels, the 4th not read) agree bit for bit, and nothing is left unwritten (the
+    /// unit tests' fresh buffers read as NaN).
+    #[test]
+    fn every_pixel_is_written_over_either_background() {
+        let size = 45;
+        let s = SyntheticSplat::<f32>::head(300, size, 0.75, 5);
+        let proj = project_forward(&s.camera, &s.inputs(Some(3))).unwrap();
+        let colour = [0.2f32, 0.5, 0.9];
+        let uniform = rasterize_forward(&s.raster_inputs(&proj, Some(&colour), None, 0.01)).unwrap();
+        let values: Vec<f32> = (0..size * size).flat_map(|_| [0.2, 0.5, 0.9, 7.0]).collect();
+        let mut inputs = s.raster_inputs(&proj, None, None, 0.01);
+        inputs.background = Some(Background::Image {
+            values: &values,
+            channels: 4,
+        });
+        let over_image = rasterize_forward(&inputs).unwrap();
+        let t = &uniform.transmittance;
+        assert!(uniform.image.iter().chain(t).all(|v| v.is_finite()));
+        assert!(t.iter().any(|&v| v < 0.5) && t.iter().any(|&v| v == 1.0));
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&uniform.image), bits(&over_image.image));
+        assert_eq!(bits(t), bits(&over_image.transmittance));
     }
 }
