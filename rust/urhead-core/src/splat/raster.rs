@@ -4,6 +4,8 @@
 //! [`TileState::visit_gaussian`] and [`sample`] are the single source of every compositing decision:
 //! the backward replays them.
 
+use std::mem::MaybeUninit;
+
 use rayon::prelude::*;
 
 use super::binning::Binning;
@@ -11,8 +13,6 @@ use super::lanes::{Lanes, WIDTH};
 use super::{Background, RasterInputs, SplatReal, ALPHA_MAX, ALPHA_MIN, TILE, T_STOP};
 use crate::error::Result;
 use crate::mat3::map3;
-use std::mem::MaybeUninit;
-
 use crate::memory::{assume_written, unwritten};
 use crate::Real;
 use num_traits::{One, Zero};
@@ -297,7 +297,7 @@ where
     let splats = splats(inputs);
     let (w, h, c) = (inputs.width, inputs.height, inputs.channels);
     // Every pixel of both is written whole by its tile's `write_tile` below: neither is
-    // cleared first (a serial pass over 4 MB on the calling thread at 512²).
+    // cleared or filled first (a pass over 4 MB at 512²).
     let mut image = unwritten("splat image (H, W, C)", w * h * c)?;
     let mut transmittance = unwritten("splat transmittance (H, W)", w * h)?;
     let zero_bg = vec![L::Elem::zero(); c];
