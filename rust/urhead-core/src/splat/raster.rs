@@ -174,24 +174,33 @@ impl<L: Lanes> TileState<L> {
         let mut active = [L::mask_from_bits(0); SLOTS];
         let mut depth_limit = [L::splat(T::infinity()); SLOTS];
         let mut row_active = [0u32; TILE];
+        let eps = L::splat(inputs.depth_eps);
         for row in 0..TILE {
             let y = y0 + row;
+            if y >= inputs.height {
+                break; // rows below the image: inactive, no depth limit
+            }
             for ch in 0..CHUNKS_PER_ROW {
                 let xc = x0 + ch * WIDTH;
-                let mut bits = 0u8;
-                let mut lim = [T::infinity(); WIDTH];
-                for (i, l) in lim.iter_mut().enumerate() {
-                    let x = xc + i;
-                    if x < inputs.width && y < inputs.height {
-                        bits |= 1 << i;
-                        if let Some(d) = inputs.depth_map {
-                            *l = d[y * inputs.width + x] + inputs.depth_eps;
-                        }
-                    }
+                let lanes = WIDTH.min(inputs.width.saturating_sub(xc));
+                if lanes == 0 {
+                    continue; // a chunk past the image's right edge: inactive
                 }
-                active[row * CHUNKS_PER_ROW + ch] = L::mask_from_bits(bits);
-                depth_limit[row * CHUNKS_PER_ROW + ch] = L::from_array(lim);
-                row_active[row] += bits.count_ones();
+                let bits = (0xffu16 >> (WIDTH - lanes)) as u8; // the chunk's pixels in the image
+                let slot = row * CHUNKS_PER_ROW + ch;
+                active[slot] = L::mask_from_bits(bits);
+                row_active[row] += lanes as u32;
+                let Some(d) = inputs.depth_map else { continue };
+                let first = y * inputs.width + xc;
+                depth_limit[slot] = if lanes == WIDTH {
+                    L::from_array(std::array::from_fn(|i| d[first + i])).add(eps)
+                } else {
+                    let mut lim = [T::infinity(); WIDTH];
+                    for (l, &z) in lim.iter_mut().zip(&d[first..first + lanes]) {
+                        *l = z + inputs.depth_eps;
+                    }
+                    L::from_array(lim)
+                };
             }
         }
         Self {
@@ -419,8 +428,52 @@ fn write_tile<L: Lanes>(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::splat::lanes::Emu;
     use crate::splat::project_forward;
     use crate::splat::synthetic::SyntheticSplat;
+
+    /// A tile's state before any Gaussian: exactly its pixels inside the image active, each
+    /// with its mesh depth plus the tolerance as its limit (∞ outside), in interior, edge
+    /// and corner tiles of an image that is not a multiple of the tile.
+    #[test]
+    fn tile_state_starts_from_the_pixels_in_the_image_and_their_depths() {
+        fn check<L: Lanes<Elem = f32>>() {
+            // A 37 × 37 image (2 tiles + 5 pixels each way), every pixel's depth distinct.
+            let size = 37usize;
+            let s = SyntheticSplat::<f32>::head(10, size as u32, 0.75, 1);
+            let proj = project_forward(&s.camera, &s.inputs(Some(3))).unwrap();
+            let depth: Vec<f32> = (0..size * size).map(|i| 0.5 + i as f32 * 1e-3).collect();
+            let eps = 0.01f32;
+            let inputs = s.raster_inputs(&proj, None, Some(&depth), eps);
+            for (tile_x, tile_y) in [(0, 0), (2, 0), (0, 2), (2, 2)] {
+                let st = TileState::<L>::new(&inputs, tile_x, tile_y);
+                let mut in_image = 0;
+                for row in 0..TILE {
+                    for ch in 0..CHUNKS_PER_ROW {
+                        let slot = row * CHUNKS_PER_ROW + ch;
+                        let limits = st.depth_limit[slot].to_array();
+                        for (i, &limit) in limits.iter().enumerate() {
+                            let (x, y) = (tile_x * TILE + ch * WIDTH + i, tile_y * TILE + row);
+                            let inside = x < size && y < size;
+                            assert_eq!(L::mask_bits(st.active[slot]) >> i & 1 == 1, inside);
+                            let expected = if inside {
+                                depth[y * size + x] + eps
+                            } else {
+                                f32::INFINITY
+                            };
+                            assert_eq!(limit.to_bits(), expected.to_bits(), "pixel ({x}, {y})");
+                            in_image += usize::from(inside);
+                        }
+                    }
+                }
+                assert_eq!(st.num_active as usize, in_image);
+                assert_eq!(st.row_active.iter().sum::<u32>(), st.num_active);
+            }
+        }
+        check::<Emu<f32>>();
+        #[cfg(all(target_arch = "x86_64", target_feature = "avx2", target_feature = "fma"))]
+        check::<crate::splat::lanes::Avx2>();
+    }
 
     /// Every pixel is written whole by its tile. At a size that is not a multiple of the
     /// tile, a render over a uniform colour and one over an image of that colour (4
@@ -428,7 +481,9 @@ mod tests {
     /// unit tests' fresh buffers read as NaN).
     #[test]
     fn every_pixel_is_written_over_either_background() {
-        let size = 45;
+        // 37 = 2 tiles + 5 pixels: the last tile has a partial chunk and one wholly past
+        // the image's edge.
+        let size = 37;
         let s = SyntheticSplat::<f32>::head(300, size, 0.75, 5);
         let proj = project_forward(&s.camera, &s.inputs(Some(3))).unwrap();
         let colour = [0.2f32, 0.5, 0.9];
@@ -446,5 +501,11 @@ mod tests {
         let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
         assert_eq!(bits(&uniform.image), bits(&over_image.image));
         assert_eq!(bits(t), bits(&over_image.transmittance));
+        // A mesh depth behind every Gaussian hides none of them: the same render, with the
+        // tiles' depth limits read from the map.
+        let far = vec![100.0f32; (size * size) as usize];
+        let behind_all = rasterize_forward(&s.raster_inputs(&proj, Some(&colour), Some(&far), 0.01)).unwrap();
+        assert_eq!(bits(&uniform.image), bits(&behind_all.image));
+        assert_eq!(bits(t), bits(&behind_all.transmittance));
     }
 }
