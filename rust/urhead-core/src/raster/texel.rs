@@ -152,11 +152,24 @@ fn blend_float16(out: &mut [f32], rows: [&[f16]; 4], w: [f32; 4]) {
             }
         }
     }
-    for i in done..n {
-        let [a, b, c, d] = rows.map(|r| r[i].to_f32());
-        out[i] = w[0] * a + w[1] * b + w[2] * c + w[3] * d;
+    // The tail (and everything without F16C), widened a block at a time and blended by
+    // `blend` itself.
+    for start in (done..n).step_by(TAIL_BLOCK) {
+        let len = TAIL_BLOCK.min(n - start);
+        let mut widened = [[0f32; TAIL_BLOCK]; 4];
+        for (dst, row) in widened.iter_mut().zip(rows) {
+            row[start..start + len].convert_to_f32_slice(&mut dst[..len]);
+        }
+        blend(
+            &mut out[start..start + len],
+            widened.each_ref().map(|r| &r[..len]),
+            w,
+        );
     }
 }
+
+/// Channels widened at a time by [`blend_float16`]'s scalar part.
+const TAIL_BLOCK: usize = 8;
 
 #[cfg(test)]
 mod tests {

@@ -191,16 +191,11 @@ impl<L: Lanes> TileState<L> {
                 active[slot] = L::mask_from_bits(bits);
                 row_active[row] += lanes as u32;
                 let Some(d) = inputs.depth_map else { continue };
+                // The chunk's depths, ∞ past the image's edge (∞ + ε stays ∞), plus ε.
                 let first = y * inputs.width + xc;
-                depth_limit[slot] = if lanes == WIDTH {
-                    L::from_array(std::array::from_fn(|i| d[first + i])).add(eps)
-                } else {
-                    let mut lim = [T::infinity(); WIDTH];
-                    for (l, &z) in lim.iter_mut().zip(&d[first..first + lanes]) {
-                        *l = z + inputs.depth_eps;
-                    }
-                    L::from_array(lim)
-                };
+                let mut depths = [T::infinity(); WIDTH];
+                depths[..lanes].copy_from_slice(&d[first..first + lanes]);
+                depth_limit[slot] = L::from_array(depths).add(eps);
             }
         }
         Self {
